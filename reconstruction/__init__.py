@@ -1,0 +1,1 @@
+"""skycap reconstruction."""

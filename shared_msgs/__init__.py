@@ -1,0 +1,1 @@
+"""skycap shared_msgs."""

@@ -1,0 +1,81 @@
+"""The one command-line tool: ``skycap <subcommand> ...``.
+
+Each part of the system registers its own subcommands in a ``cli.py`` module exposing
+``register(subparsers)``; heavy imports happen inside the command functions so that
+``skycap --help`` stays fast. A registered command sets ``func`` (taking the parsed args, returning an
+exit code) with ``parser.set_defaults(func=...)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from skycap import __version__
+
+#: Modules that contribute subcommands, in help order.
+COMMAND_MODULES = (
+    "simulator.cli",
+    "onboard.cli",
+    "groundstation.cli",
+    "reconstruction.cli",
+    "skycap.demo",
+)
+
+log = logging.getLogger("skycap")
+
+
+def setup_logging(level: str = "INFO") -> None:
+    """Log to stderr (journald picks it up under systemd) with a compact format."""
+    logging.basicConfig(
+        level=getattr(logging, level.upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="skycap", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"skycap {__version__}")
+    parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING or ERROR (default INFO)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            mod = importlib.import_module(name)
+        except ModuleNotFoundError as e:  # a part that is not built yet
+            if e.name and name.startswith(e.name):
+                continue
+            raise
+        register = getattr(mod, "register", None)
+        if register is not None:
+            register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.log_level)
+    func = getattr(args, "func", None)
+    if func is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(func(args) or 0)
+    except KeyboardInterrupt:
+        log.warning("interrupted")
+        return 130
+    except Exception as e:  # clear one-line error for expected problems; traceback at DEBUG
+        from skycap.errors import SkycapError
+
+        if isinstance(e, SkycapError):
+            log.debug("details", exc_info=True)
+            print(f"skycap {args.command}: error: {e}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,24 @@
+"""Shared fixtures. ``../shared/data`` (beside the checkout) holds real data; tests that need it are
+skipped where it is absent (a fresh clone), and always run in CI where it is present."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("SKYCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def cmu_dir(shared_data: Path) -> Path:
+    return shared_data / "mocap" / "cmu"
