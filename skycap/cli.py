@@ -17,11 +17,13 @@ from skycap import __version__
 
 #: Modules that contribute subcommands, in help order.
 COMMAND_MODULES = (
+    "skycap.demo",
     "simulator.cli",
     "onboard.cli",
+    "onboard.detector.cli",
     "groundstation.cli",
     "reconstruction.cli",
-    "skycap.demo",
+    "reconstruction.keypoints.cli",
 )
 
 log = logging.getLogger("skycap")
