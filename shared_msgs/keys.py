@@ -1,0 +1,90 @@
+"""Zenoh key expressions: the one place that names them.
+
+Layout: ``skycap/v1/<fleet>/<node>/<topic>`` where ``<node>`` is a drone id (``drone_1``...), ``gcs`` (the
+ground station / fleet client) or ``sim`` (the simulator). The ``v1`` segment is the wire generation:
+messages inside carry their own per-type schema version.
+
+| key | message | publisher | notes |
+| --- | --- | --- | --- |
+| ``skycap/v1/<fleet>/<drone>/state`` | VehicleState | agent | autopilot estimate, >= 10 Hz on the wire (recorder keeps all) |
+| ``skycap/v1/<fleet>/<drone>/health`` | Health | agent | 1-2 Hz heartbeat |
+| ``skycap/v1/<fleet>/<drone>/camera_info`` | CameraInfo | camera | on change and 1 Hz |
+| ``skycap/v1/<fleet>/<drone>/camera/image`` | CameraFrame | camera | drone-local (not needed by teammates) |
+| ``skycap/v1/<fleet>/<drone>/detections`` | Detections | agent | shared with teammates |
+| ``skycap/v1/<fleet>/<drone>/keypoints2d`` | Keypoints2D | detector | |
+| ``skycap/v1/<fleet>/<drone>/sim/keypoints2d`` | Keypoints2D (simulated=True) | simulator camera | |
+| ``skycap/v1/<fleet>/<drone>/target`` | TargetEstimate | agent | |
+| ``skycap/v1/<fleet>/<drone>/ack`` | CommandAck | agent | answers to commands and plans |
+| ``skycap/v1/<fleet>/gcs/cmd`` | Command | ground station | ``target`` field selects drones |
+| ``skycap/v1/<fleet>/gcs/plan`` | OrbitPlan | ground station | latest plan (agents also query it) |
+| ``skycap/v1/<fleet>/gcs/health`` | Health | ground station | the ground-station heartbeat agents watch |
+| ``skycap/v1/<fleet>/sim/truth`` | SimTruth | simulator | ground truth, simulation only |
+
+Liveliness tokens: ``skycap/v1/<fleet>/<node>/alive`` is declared by every running node; watching
+``skycap/v1/<fleet>/*/alive`` tells who is present.
+"""
+
+from __future__ import annotations
+
+import re
+
+PREFIX = "skycap/v1"
+GCS = "gcs"
+SIM = "sim"
+
+_SEGMENT = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+def _check(name: str, what: str) -> str:
+    if not _SEGMENT.match(name):
+        raise ValueError(f"{what} {name!r} must be letters, digits, '_' or '-' (it becomes a Zenoh key segment)")
+    return name
+
+
+def node_key(fleet: str, node: str, topic: str) -> str:
+    """``skycap/v1/<fleet>/<node>/<topic>``; topic may contain '/'."""
+    return f"{PREFIX}/{_check(fleet, 'fleet id')}/{_check(node, 'node id')}/{topic}"
+
+
+def drone_key(fleet: str, drone_id: str, topic: str) -> str:
+    return node_key(fleet, drone_id, topic)
+
+
+def gcs_key(fleet: str, topic: str) -> str:
+    return node_key(fleet, GCS, topic)
+
+
+def sim_key(fleet: str, topic: str) -> str:
+    return node_key(fleet, SIM, topic)
+
+
+def all_drones_key(fleet: str, topic: str) -> str:
+    """Matches ``topic`` of every node: ``skycap/v1/<fleet>/*/<topic>``."""
+    return f"{PREFIX}/{_check(fleet, 'fleet id')}/*/{topic}"
+
+
+def alive_key(fleet: str, node: str) -> str:
+    return node_key(fleet, node, "alive")
+
+
+def parse_key(key: str) -> tuple[str, str, str]:
+    """(fleet, node, topic) of a skycap key; ValueError for anything else."""
+    parts = str(key).split("/")
+    if len(parts) < 5 or "/".join(parts[:2]) != PREFIX:
+        raise ValueError(f"{key!r} is not a skycap key ({PREFIX}/<fleet>/<node>/<topic>)")
+    return parts[2], parts[3], "/".join(parts[4:])
+
+
+# Topic names (suffixes after the node).
+STATE = "state"
+HEALTH = "health"
+CAMERA_INFO = "camera_info"
+CAMERA_IMAGE = "camera/image"
+DETECTIONS = "detections"
+KEYPOINTS2D = "keypoints2d"
+SIM_KEYPOINTS2D = "sim/keypoints2d"
+TARGET = "target"
+ACK = "ack"
+CMD = "cmd"
+PLAN = "plan"
+TRUTH = "truth"
