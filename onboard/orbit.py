@@ -1,0 +1,184 @@
+"""Orbit geometry and the orbit setpoint source: pure logic over numpy, no I/O.
+
+Every drone of the fleet flies its phase slot of one shared circle (:class:`shared_msgs.OrbitPlan`).
+Drone ``k``'s angle at time ``t`` (radians, in the NED horizontal plane from north towards east)::
+
+    theta_k(t) = phase_offset_rad[k] + direction * angular_speed_rad_s * max(0, t - start_time)
+
+so before the shared start time every drone waits at its starting slot, and after it the slots turn
+together (their spacing is fixed by the plan, whatever the clock of each drone's start). Position
+``center + radius * (cos theta, sin theta)`` at ``down = -altitude_m``; velocity feed-forward is the
+derivative; the camera yaw points at the centre and the gimbal pitch down at it.
+
+:class:`OrbitController` is a :class:`SetpointSource` (the agent's loop asks it for one
+:class:`Setpoint` per tick). It approaches the slot from wherever the vehicle is with a rate-limited
+"carrot" (speed ``approach_speed_m_s``), so entering the orbit from a hover never asks the autopilot
+for a jump, then tracks the moving slot with velocity feed-forward. A formation controller (MPC) will
+be another :class:`SetpointSource`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from shared_msgs import OrbitPlan
+
+__all__ = [
+    "Setpoint",
+    "SetpointSource",
+    "HoldSource",
+    "OrbitController",
+    "slot_angle_rad",
+    "slot_state",
+    "yaw_to_point_rad",
+    "gimbal_pitch_to_point_rad",
+    "min_slot_separation_m",
+    "evenly_spaced_phases",
+]
+
+
+@dataclass
+class Setpoint:
+    """One offboard setpoint (NED world frame).
+
+    position_ned_m: (3,) metres; velocity_ned_m_s: (3,) feed-forward; yaw_rad: heading (0 = north,
+    positive = east); gimbal_pitch_rad: camera pitch (negative = down) or None for "leave it".
+    """
+
+    position_ned_m: np.ndarray
+    velocity_ned_m_s: np.ndarray
+    yaw_rad: float
+    gimbal_pitch_rad: float | None = None
+    acceleration_ned_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+class SetpointSource(Protocol):
+    """What the agent's control loop asks for a setpoint each tick.
+
+    ``update(t_s, position_ned_m, velocity_ned_m_s, yaw_rad)`` gets the time (s, same clock as the
+    plan's start time) and the vehicle's estimate, and returns the :class:`Setpoint` to stream.
+    """
+
+    def update(self, t_s: float, position_ned_m: np.ndarray, velocity_ned_m_s: np.ndarray, yaw_rad: float) -> Setpoint: ...
+
+
+class HoldSource:
+    """Hold a fixed point and heading (pause, or waiting for a plan while in offboard)."""
+
+    def __init__(self, position_ned_m, yaw_rad: float):
+        self.position_ned_m = np.asarray(position_ned_m, dtype=float).copy()
+        self.yaw_rad = float(yaw_rad)
+
+    def update(self, t_s, position_ned_m, velocity_ned_m_s, yaw_rad) -> Setpoint:
+        return Setpoint(self.position_ned_m.copy(), np.zeros(3), self.yaw_rad)
+
+
+def slot_angle_rad(plan: OrbitPlan, drone_id: str, t_s: float) -> float:
+    """Angle of ``drone_id``'s slot at time ``t_s`` (UNIX seconds); before the start time it stays put."""
+    t0 = plan.start_time_ns * 1e-9
+    dt = max(0.0, t_s - t0)
+    return plan.phase_offset_rad[drone_id] + plan.direction * plan.angular_speed_rad_s * dt
+
+
+def slot_state(plan: OrbitPlan, drone_id: str, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(position (3,), velocity (3,), acceleration (3,)) of the slot, NED; zero motion before the start."""
+    th = slot_angle_rad(plan, drone_id, t_s)
+    c = np.asarray(plan.center_ned_m, dtype=float)
+    r = plan.radius_m
+    pos = np.array([c[0] + r * math.cos(th), c[1] + r * math.sin(th), -plan.altitude_m])
+    if t_s < plan.start_time_ns * 1e-9:
+        return pos, np.zeros(3), np.zeros(3)
+    w = plan.direction * plan.angular_speed_rad_s
+    vel = np.array([-r * w * math.sin(th), r * w * math.cos(th), 0.0])
+    acc = np.array([-r * w * w * math.cos(th), -r * w * w * math.sin(th), 0.0])
+    return pos, vel, acc
+
+
+def yaw_to_point_rad(from_ned_m, to_ned_m) -> float:
+    """Heading (0 = north, + = east) from a position towards a point (horizontal plane)."""
+    d = np.asarray(to_ned_m, dtype=float) - np.asarray(from_ned_m, dtype=float)
+    return math.atan2(d[1], d[0])
+
+
+def gimbal_pitch_to_point_rad(from_ned_m, to_ned_m) -> float:
+    """Camera pitch (negative = down) from a position towards a point."""
+    d = np.asarray(to_ned_m, dtype=float) - np.asarray(from_ned_m, dtype=float)
+    return -math.atan2(d[2], math.hypot(d[0], d[1]))
+
+
+def min_slot_separation_m(plan: OrbitPlan) -> float:
+    """Smallest distance between two slots of the plan (chord of the smallest phase gap); inf for < 2."""
+    phases = sorted(v % (2 * math.pi) for v in plan.phase_offset_rad.values())
+    if len(phases) < 2:
+        return math.inf
+    gaps = [b - a for a, b in zip(phases, phases[1:])] + [phases[0] + 2 * math.pi - phases[-1]]
+    return 2.0 * plan.radius_m * math.sin(min(gaps) / 2.0)
+
+
+def evenly_spaced_phases(drone_ids: list[str], first_rad: float = 0.0) -> dict[str, float]:
+    """Phase offsets 2 pi k / N (k in the given order) starting at ``first_rad``."""
+    n = len(drone_ids)
+    return {d: float((first_rad + 2.0 * math.pi * k / n) % (2 * math.pi)) for k, d in enumerate(drone_ids)}
+
+
+class OrbitController:
+    """Setpoints for one drone's slot of an :class:`OrbitPlan` (a :class:`SetpointSource`).
+
+    A carrot point starts at the vehicle's position and moves towards the slot at most at
+    ``approach_speed_m_s`` (horizontal) / ``approach_climb_m_s`` (vertical); once it has reached the
+    slot it is the slot, streamed with velocity and acceleration feed-forward. Yaw always points the
+    camera at the centre (from the carrot, so the heading is smooth), gimbal pitch too unless the plan
+    fixes it.
+    """
+
+    def __init__(self, plan: OrbitPlan, drone_id: str, approach_speed_m_s: float = 3.0, approach_climb_m_s: float = 1.5):
+        if drone_id not in plan.phase_offset_rad:
+            raise ValueError(f"plan {plan.plan_id!r} has no phase slot for {drone_id!r}")
+        self.plan = plan
+        self.drone_id = drone_id
+        self.approach_speed_m_s = float(approach_speed_m_s)
+        self.approach_climb_m_s = float(approach_climb_m_s)
+        self._carrot: np.ndarray | None = None
+        self._t_last: float | None = None
+        self.captured = False
+
+    @property
+    def center_ned_m(self) -> np.ndarray:
+        return np.asarray(self.plan.center_ned_m, dtype=float)
+
+    def update(self, t_s: float, position_ned_m, velocity_ned_m_s, yaw_rad: float) -> Setpoint:
+        slot_p, slot_v, slot_a = slot_state(self.plan, self.drone_id, t_s)
+        if self._carrot is None:
+            self._carrot = np.asarray(position_ned_m, dtype=float).copy()
+            self._t_last = t_s
+        dt = min(max(t_s - self._t_last, 0.0), 0.5)
+        self._t_last = t_s
+        if not self.captured:
+            # Move the carrot with the slot's own motion plus a bounded closing speed.
+            err = slot_p - self._carrot
+            step = err.copy()
+            h = math.hypot(err[0], err[1])
+            max_h = (self.approach_speed_m_s + float(np.linalg.norm(slot_v[:2]))) * dt
+            if h > max_h > 0:
+                step[:2] *= max_h / h
+            max_v = self.approach_climb_m_s * dt
+            step[2] = float(np.clip(err[2], -max_v, max_v))
+            self._carrot = self._carrot + step
+            vel = step / dt if dt > 0 else np.zeros(3)
+            acc = np.zeros(3)
+            if float(np.linalg.norm(slot_p - self._carrot)) < 1e-6:
+                self.captured = True  # from the next tick on: the slot itself, with feed-forward
+            pos = self._carrot
+        else:
+            self._carrot = slot_p
+            pos, vel, acc = slot_p, slot_v, slot_a
+        yaw = yaw_to_point_rad(pos, self.center_ned_m)
+        if self.plan.gimbal_pitch_rad is not None:
+            pitch = float(self.plan.gimbal_pitch_rad)
+        else:
+            pitch = gimbal_pitch_to_point_rad(pos, self.center_ned_m)
+        return Setpoint(np.array(pos, dtype=float), np.array(vel, dtype=float), yaw, pitch, np.array(acc, dtype=float))
