@@ -1,0 +1,201 @@
+"""Synthetic captures from real motion: virtual drones orbit a person whose 3D joints come from motion
+capture, and record noisy 2D keypoints and noisy self-pose estimates (the evaluation harness's source).
+
+Pipeline (:func:`synthesize_capture`):
+
+1. Ground-truth joints ``joints_ned`` (T, 17, 3) metres, world NED, at times ``t_ns`` (T,) — e.g.
+   ``mocap_to_coco17(read_bvh(f))`` (:mod:`skycap.skeleton`).
+2. ``drones`` cameras fly a circular orbit of ``radius_m`` at ``altitude_m`` above the ground (down = 0)
+   about the person's (smoothed) hip centre, evenly spaced, moving at ``speed_mps`` along the orbit,
+   each camera aimed at the hip centre (with a small aim wobble). True poses are sampled at
+   ``pose_rate_hz``.
+3. Each camera captures frames at ``camera_rate_hz``; with ``unsync`` each camera gets its own random
+   phase in [0, 1/rate) and a small per-frame jitter, so frames of different cameras never coincide.
+4. Keypoints: true joints (linearly interpolated to the frame time) projected with the TRUE pose, plus
+   Gaussian noise ``noise_px`` per axis; with probability ``outlier_rate`` a keypoint is replaced by a
+   wrong point (uniform in the person's box grown by 50 %), with ``swap_rate`` a whole detection has
+   left/right swapped, with ``miss_rate`` a keypoint is missing (confidence 0); points outside the
+   image are missing. Confidences: inliers U(0.5, 1), outliers U(0.2, 0.8) (a detector is often
+   confident about its mistakes). ``detectors`` independent detectors per camera.
+5. Drone self-pose estimates: true pose + error made of a constant bias and a slow drift (period
+   5-20 s) per axis; ``camera_pos_noise_m`` and ``camera_rot_noise_deg`` are the RMS 3D error
+   (position norm, rotation angle). The capture carries these sigmas as the drones' uncertainty.
+
+Example::
+
+    cap, truth = synthesize_capture(joints_ned, t_ns, SynthConfig(drones=3), seed=0)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial.transform import Rotation
+
+from reconstruction.capture import CameraCapture, Capture, CaptureError, interpolate_poses
+from skycap.frames import intrinsics_matrix, make_T, project_points
+from skycap.skeleton import COCO17_FLIP
+
+__all__ = ["SynthConfig", "SynthTruth", "synthesize_capture", "interpolate_joints", "look_at_T_world_cam"]
+
+
+@dataclasses.dataclass
+class SynthConfig:
+    """Virtual flight and detector noise. Defaults = the issue's default harness setting."""
+
+    drones: int = 3
+    radius_m: float = 8.0
+    altitude_m: float = 8.0
+    speed_mps: float = 1.0  # tangential speed of the orbit (0 = hover)
+    camera_rate_hz: float = 30.0
+    unsync: bool = True
+    frame_jitter_ms: float = 2.0
+    pose_rate_hz: float = 50.0
+    noise_px: float = 5.0
+    outlier_rate: float = 0.10
+    swap_rate: float = 0.02
+    miss_rate: float = 0.05
+    detectors: int = 1
+    camera_pos_noise_m: float = 0.5
+    camera_rot_noise_deg: float = 2.0
+    width_px: int = 1920
+    height_px: int = 1080
+    focal_px: float = 1500.0
+    aim_wobble_deg: float = 1.0
+
+
+@dataclasses.dataclass
+class SynthTruth:
+    """Ground truth of a synthetic capture."""
+
+    t_ns: np.ndarray  # (T,) joint times
+    joints_ned: np.ndarray  # (T, 17, 3)
+    T_world_cam_true: list[np.ndarray]  # per camera (P, 4, 4) at that camera's t_pose_ns
+    T_world_cam_true_frames: list[np.ndarray]  # per camera (F, 4, 4) at its frame times
+
+
+def interpolate_joints(t_ns: np.ndarray, joints: np.ndarray, t_query_ns: np.ndarray) -> np.ndarray:
+    """Joints (Q, J, 3) linearly interpolated in time (clamped). Shapes: t_ns (T,), joints (T, J, 3)."""
+    t = (np.asarray(t_ns, dtype=np.int64) - t_ns[0]).astype(float)
+    q = (np.asarray(t_query_ns, dtype=np.int64) - t_ns[0]).astype(float)
+    flat = joints.reshape(len(t), -1)
+    out = np.stack([np.interp(q, t, flat[:, k]) for k in range(flat.shape[1])], axis=-1)
+    return out.reshape((len(q),) + joints.shape[1:])
+
+
+def look_at_T_world_cam(cam_pos_ned: np.ndarray, target_ned: np.ndarray) -> np.ndarray:
+    """Camera poses (N, 4, 4) at ``cam_pos_ned`` (N, 3) looking at ``target_ned`` (N, 3), image x level
+    (no roll): optical z = towards target, x = right (horizontal), y = down-ish."""
+    z = target_ned - cam_pos_ned
+    z /= np.linalg.norm(z, axis=-1, keepdims=True)
+    down = np.array([0.0, 0.0, 1.0])
+    x = np.cross(down, z)  # right: down x forward
+    x /= np.linalg.norm(x, axis=-1, keepdims=True)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z], axis=-1)
+    return make_T(R, cam_pos_ned)
+
+
+def _smooth_error(rng: np.random.Generator, t_s: np.ndarray, rms: float) -> np.ndarray:
+    """(N, 3) error: constant bias + slow sinusoidal drift, expected RMS 3D norm = ``rms``."""
+    if rms <= 0:
+        return np.zeros((len(t_s), 3))
+    per_axis = rms / np.sqrt(3.0)
+    bias = rng.normal(0.0, per_axis * np.sqrt(0.7), 3)
+    amp = rng.normal(0.0, per_axis * np.sqrt(0.3 * 2.0), 3)
+    period = rng.uniform(5.0, 20.0, 3)
+    phase = rng.uniform(0, 2 * np.pi, 3)
+    return bias + amp * np.sin(2 * np.pi * t_s[:, None] / period + phase)
+
+
+def synthesize_capture(
+    joints_ned: np.ndarray, t_ns: np.ndarray, cfg: SynthConfig | None = None, seed: int = 0
+) -> tuple[Capture, SynthTruth]:
+    """Fly virtual drones around real motion; shapes in the module docstring.
+
+    Returns (capture with drone-estimated poses and noisy keypoints, ground truth).
+    """
+    cfg = cfg or SynthConfig()
+    joints_ned = np.asarray(joints_ned, dtype=float)
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if joints_ned.ndim != 3 or joints_ned.shape[1:] != (17, 3):
+        raise CaptureError(f"joints_ned must be (T, 17, 3) COCO-17 metres, got {joints_ned.shape}")
+    if len(t_ns) != len(joints_ned) or len(t_ns) < 2:
+        raise CaptureError("t_ns must give one time per joint frame, at least 2 frames")
+    if cfg.drones < 1:
+        raise CaptureError("drones must be >= 1")
+    rng = np.random.default_rng(seed)
+    t0, t1 = int(t_ns[0]), int(t_ns[-1])
+    dur_s = (t1 - t0) * 1e-9
+    hip_mid = 0.5 * (joints_ned[:, 11] + joints_ned[:, 12])
+    fps = (len(t_ns) - 1) / max(dur_s, 1e-9)
+    centre = gaussian_filter1d(hip_mid, sigma=max(fps * 0.5, 1.0), axis=0, mode="nearest")  # follow ~0.5 s lag-free
+
+    t_pose = np.arange(t0, t1 + 1, int(1e9 / cfg.pose_rate_hz), dtype=np.int64)
+    if t_pose[-1] != t1:
+        t_pose = np.append(t_pose, t1)
+    tp_s = (t_pose - t0) * 1e-9
+    centre_p = interpolate_joints(t_ns, centre[:, None], t_pose)[:, 0]
+    hip_p = interpolate_joints(t_ns, hip_mid[:, None], t_pose)[:, 0]
+    omega = cfg.speed_mps / max(cfg.radius_m, 1e-6)
+    K = intrinsics_matrix(cfg.focal_px, cfg.focal_px, cfg.width_px / 2.0, cfg.height_px / 2.0)
+    period_ns = int(1e9 / cfg.camera_rate_hz)
+
+    cams, T_true_all, T_true_frames = [], [], []
+    for c in range(cfg.drones):
+        ang = 2 * np.pi * c / cfg.drones + omega * tp_s + rng.uniform(-0.1, 0.1)
+        pos = np.stack(
+            [centre_p[:, 0] + cfg.radius_m * np.cos(ang), centre_p[:, 1] + cfg.radius_m * np.sin(ang),
+             np.full_like(ang, -cfg.altitude_m)], axis=-1)  # fmt: skip
+        wob = _smooth_error(rng, tp_s, np.radians(cfg.aim_wobble_deg) * np.linalg.norm(pos - hip_p, axis=-1).mean())
+        T_true = look_at_T_world_cam(pos, hip_p + wob)
+        # drone estimate = truth + bias/drift
+        dp = _smooth_error(rng, tp_s, cfg.camera_pos_noise_m)
+        dr = _smooth_error(rng, tp_s, np.radians(cfg.camera_rot_noise_deg))
+        R_est = Rotation.from_rotvec(dr).as_matrix() @ T_true[:, :3, :3]
+        T_est = make_T(R_est, T_true[:, :3, 3] + dp)
+
+        phase = int(rng.uniform(0, period_ns)) if cfg.unsync else 0
+        tf = np.arange(t0 + phase, t1 + 1, period_ns, dtype=np.int64)
+        if cfg.unsync and cfg.frame_jitter_ms > 0:
+            tf = tf + rng.normal(0, cfg.frame_jitter_ms * 1e6, len(tf)).astype(np.int64)
+            tf = np.clip(np.sort(tf), t0, t1)
+
+        T_tf = interpolate_poses(t_pose, T_true, tf)
+        X = interpolate_joints(t_ns, joints_ned, tf)  # (F, 17, 3)
+        F, D = len(tf), cfg.detectors
+        kp = np.zeros((F, D, 17, 2))
+        conf = np.zeros((F, D, 17))
+        for f in range(F):
+            uv, z = project_points(K, T_tf[f], X[f])
+            lo, hi = uv.min(0), uv.max(0)
+            span = np.maximum(hi - lo, 20.0)
+            for d in range(D):
+                u = uv + rng.normal(0, cfg.noise_px, uv.shape)
+                cf = rng.uniform(0.5, 1.0, 17)
+                out = rng.random(17) < cfg.outlier_rate
+                if out.any():
+                    u[out] = lo - 0.25 * span + rng.random((out.sum(), 2)) * 1.5 * span
+                    cf[out] = rng.uniform(0.2, 0.8, out.sum())
+                if rng.random() < cfg.swap_rate:
+                    u, cf = u[list(COCO17_FLIP)], cf[list(COCO17_FLIP)]
+                miss = rng.random(17) < cfg.miss_rate
+                inside = (z > 0.1) & (u[:, 0] >= 0) & (u[:, 0] < cfg.width_px) & (u[:, 1] >= 0) & (u[:, 1] < cfg.height_px)
+                cf[miss | ~inside] = 0.0
+                kp[f, d] = u
+                conf[f, d] = cf
+        cams.append(
+            CameraCapture(
+                name=f"drone_{c}", t_pose_ns=t_pose, T_world_cam=T_est,
+                pos_sigma_m=max(cfg.camera_pos_noise_m, 1e-3), rot_sigma_deg=max(cfg.camera_rot_noise_deg, 1e-2),
+                t_intrinsics_ns=np.array([t0]), K=K[None], width_px=cfg.width_px, height_px=cfg.height_px,
+                t_frame_ns=tf, keypoints_px=kp, confidence=conf,
+                detectors=tuple(f"synthetic_{d}" for d in range(D)),
+            )  # fmt: skip
+        )
+        T_true_all.append(T_true)
+        T_true_frames.append(T_tf)
+    cap = Capture(cams, meta={"source": "synthetic", "synth": dataclasses.asdict(cfg), "seed": seed})
+    return cap, SynthTruth(t_ns, joints_ned, T_true_all, T_true_frames)
