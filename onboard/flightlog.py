@@ -1,0 +1,268 @@
+"""Read flight recorder files (MCAP written by :mod:`onboard.recorder`), finalised or cut short by a crash.
+
+    from onboard.flightlog import FlightLog
+
+    log = FlightLog("flights/demo/drone_1.mcap")
+    log.topic_counts()                               # {"state": 3012, "camera/image": 601, ...}
+    for m in log.messages(["state"]):                # LogMessage: topic, msg, data, log_time_ns, ...
+        ...
+    states = log.read_topic("state", VehicleState)   # list of decoded messages
+
+A file whose recorder was killed has no summary or footer: it is read sequentially up to the last complete
+record (at most the recorder's flush interval is lost), with one warning saying so; ``log.truncated`` tells
+afterwards. :func:`recover` rewrites such a file into a finalised one (what ``mcap recover`` does).
+Errors are :class:`FlightLogError` naming the file and the fix.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Footer, Metadata, Schema
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
+
+from shared_msgs.codec import MessageError, decode
+from shared_msgs.messages import Message
+from skycap.errors import SkycapError
+
+__all__ = ["FlightLog", "FlightLogError", "LogMessage", "read_messages", "read_topic", "recover"]
+
+log = logging.getLogger(__name__)
+
+M = TypeVar("M", bound=Message)
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+class FlightLogError(SkycapError):
+    """A flight log that cannot be read (missing, not MCAP, undecodable message)."""
+
+
+@dataclass(slots=True)
+class LogMessage:
+    """One recorded message. ``msg`` is None when read with ``decode=False``.
+
+    ``log_time_ns``: when the recorder received it; ``publish_time_ns``: the sender's ``header.t_sent_ns``;
+    ``sequence``: ``header.seq``; ``type``: the message type tag (from the channel metadata).
+    """
+
+    topic: str
+    msg: Message | None
+    data: bytes
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+    type: str
+
+
+class FlightLog:
+    """A flight recorder file. Cheap to construct (checks the file exists and is MCAP)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FlightLogError(f"flight log {self.path} does not exist; pass a drone_<i>.mcap or truth.mcap file")
+        size = self.path.stat().st_size
+        with open(self.path, "rb") as f:
+            head = f.read(len(MAGIC))
+            if size >= 2 * len(MAGIC):
+                f.seek(-len(MAGIC), os.SEEK_END)
+                tail = f.read(len(MAGIC))
+            else:
+                tail = b""
+        if head != MAGIC:
+            raise FlightLogError(
+                f"{self.path} is not an MCAP file (starts with {head[:8]!r}); flight logs are written by onboard.recorder"
+            )
+        self.finalised = tail == MAGIC
+        self.size_bytes = size
+        self.truncated = False  #: set after reading a non-finalised file
+        self.bytes_read = 0  #: where sequential reading of a non-finalised file stopped
+
+    # ------------------------------------------------------------------------------------ reading
+    def messages(
+        self,
+        topics: Iterable[str] | str | None = None,
+        *,
+        decode_messages: bool = True,
+        skip_invalid: bool = False,
+    ) -> Iterator[LogMessage]:
+        """Messages of ``topics`` (all when None). Finalised files: in log-time order (indexed read);
+        crash-truncated files: in file order up to the last complete chunk.
+
+        Undecodable messages raise :class:`FlightLogError` (or are logged and skipped with ``skip_invalid``).
+        """
+        if isinstance(topics, str):
+            topics = [topics]
+        wanted = None if topics is None else set(topics)
+        raw = self._iter_finalised(wanted) if self.finalised else self._iter_truncated(wanted)
+        for schema, channel, rec in raw:
+            tag = channel.metadata.get("type", "") if channel.metadata else ""
+            msg = None
+            if decode_messages:
+                try:
+                    msg = decode(rec.data, source=f"{self.path}:{channel.topic}")
+                except MessageError as e:
+                    if not skip_invalid:
+                        raise FlightLogError(
+                            f"{self.path}: message on {channel.topic!r} at log time {rec.log_time} cannot be decoded "
+                            f"({e}); read it with the skycap version that recorded it, or pass skip_invalid=True"
+                        ) from None
+                    log.warning("%s: skipped an undecodable message on %r: %s", self.path, channel.topic, e)
+                    continue
+                tag = tag or msg.__struct_config__.tag
+            yield LogMessage(channel.topic, msg, rec.data, rec.log_time, rec.publish_time, rec.sequence, tag)
+
+    def read_topic(self, topic: str, expected: type[M] | None = None) -> list[M]:
+        """All decoded messages of one topic; ``expected`` checks their type (FlightLogError otherwise)."""
+        out = []
+        for m in self.messages([topic]):
+            if expected is not None and not isinstance(m.msg, expected):
+                raise FlightLogError(
+                    f"{self.path}: topic {topic!r} holds {type(m.msg).__name__}, expected {expected.__name__}"
+                )
+            out.append(m.msg)
+        return out
+
+    def topic_counts(self) -> dict[str, int]:
+        """Number of messages per topic (from the summary when finalised, else by reading)."""
+        if self.finalised:
+            summary = self._summary()
+            if summary is not None and summary.statistics is not None:
+                counts: dict[str, int] = {}
+                for cid, n in summary.statistics.channel_message_counts.items():
+                    t = summary.channels[cid].topic
+                    counts[t] = counts.get(t, 0) + n
+                return dict(sorted(counts.items()))
+        counts = {}
+        for m in self.messages(decode_messages=False):
+            counts[m.topic] = counts.get(m.topic, 0) + 1
+        return dict(sorted(counts.items()))
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """The file's metadata records (name -> string pairs), e.g. ``{"skycap": {"node_id": "drone_1"}}``."""
+        out: dict[str, dict[str, str]] = {}
+        try:
+            with open(self.path, "rb") as f:
+                for rec in StreamReader(f).records:
+                    if isinstance(rec, Metadata):
+                        out[rec.name] = dict(rec.metadata)
+                    elif isinstance(rec, (McapMessage, Footer)):
+                        break  # the recorder writes its metadata first
+        except (McapError, EOFError, struct.error, ValueError):
+            pass
+        return out
+
+    # ---------------------------------------------------------------------------------- internals
+    def _summary(self) -> Any:
+        with open(self.path, "rb") as f:
+            try:
+                return SeekingReader(f).get_summary()
+            except (McapError, EOFError, struct.error, ValueError) as e:
+                raise FlightLogError(f"{self.path}: damaged MCAP summary ({e}); try onboard.flightlog.recover") from None
+
+    def _iter_finalised(self, wanted: set[str] | None) -> Iterator[tuple[Any, Channel, McapMessage]]:
+        with open(self.path, "rb") as f:
+            try:
+                reader = SeekingReader(f)
+                yield from reader.iter_messages(topics=None if wanted is None else sorted(wanted))
+            except (McapError, EOFError, struct.error, ValueError) as e:
+                raise FlightLogError(
+                    f"{self.path}: damaged MCAP file ({type(e).__name__}: {e}); try onboard.flightlog.recover"
+                ) from None
+
+    def _iter_truncated(self, wanted: set[str] | None) -> Iterator[tuple[Any, Channel, McapMessage]]:
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        n = 0
+        with open(self.path, "rb") as f:
+            reader = StreamReader(f, validate_crcs=True)
+            it = reader.records
+            while True:
+                try:
+                    rec = next(it)
+                except StopIteration:
+                    break
+                except Exception as e:  # EndOfFile, struct.error, zstd/lz4 errors, CRC of a partial chunk
+                    self.truncated = True
+                    self.bytes_read = f.tell()
+                    log.warning(
+                        "%s was not finalised (recorder killed?): read %d messages, stopped at the incomplete record "
+                        "near byte %d of %d (%s). onboard.flightlog.recover() rewrites it as a finalised file.",
+                        self.path, n, self.bytes_read, self.size_bytes, type(e).__name__,
+                    )
+                    return
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, McapMessage):
+                    ch = channels.get(rec.channel_id)
+                    if ch is None:
+                        raise FlightLogError(f"{self.path}: message on unknown channel {rec.channel_id}; the file is damaged")
+                    n += 1
+                    if wanted is None or ch.topic in wanted:
+                        yield schemas.get(ch.schema_id), ch, rec
+                elif isinstance(rec, Footer):
+                    break
+        self.truncated = True
+        self.bytes_read = self.size_bytes
+
+
+def read_messages(path: str | Path, topics: Iterable[str] | str | None = None, **kw: Any) -> Iterator[LogMessage]:
+    """Shorthand for ``FlightLog(path).messages(topics, **kw)``."""
+    return FlightLog(path).messages(topics, **kw)
+
+
+def read_topic(path: str | Path, topic: str, expected: type[M] | None = None) -> list[M]:
+    """Shorthand for ``FlightLog(path).read_topic(topic, expected)``."""
+    return FlightLog(path).read_topic(topic, expected)
+
+
+def recover(src: str | Path, dst: str | Path) -> dict[str, int]:
+    """Rewrite the readable part of ``src`` (finalised or not) into a finalised MCAP file ``dst``.
+
+    Returns the message count per topic written. Uses the same layout as the recorder (schemas, channel
+    metadata, log/publish times, sequence numbers).
+    """
+    from mcap.writer import Writer
+
+    from onboard.recorder import PROFILE
+
+    src_log = FlightLog(src)
+    dst = Path(dst)
+    if dst.resolve() == src_log.path.resolve():
+        raise FlightLogError(f"recover() would overwrite {src}; write to another file")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    meta = src_log.metadata()
+    counts: dict[str, int] = {}
+    with open(dst, "wb") as f:
+        w = Writer(f)
+        w.start(profile=PROFILE, library="skycap onboard.flightlog.recover")
+        for name, data in meta.items():
+            w.add_metadata(name, data)
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        raw = src_log._iter_finalised(None) if src_log.finalised else src_log._iter_truncated(None)
+        for schema, channel, rec in raw:
+            cid = channel_ids.get(channel.id)
+            if cid is None:
+                sid = 0
+                if schema is not None:
+                    sid = schema_ids.get(schema.id) or w.register_schema(schema.name, schema.encoding, schema.data)
+                    schema_ids[schema.id] = sid
+                cid = w.register_channel(channel.topic, channel.message_encoding, sid, dict(channel.metadata))
+                channel_ids[channel.id] = cid
+            w.add_message(cid, rec.log_time, rec.data, rec.publish_time, rec.sequence)
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+        w.finish()
+    return dict(sorted(counts.items()))
