@@ -1,0 +1,376 @@
+"""Detection -> 3D position measurement of the person (with covariance), as in AirCap's CDT filter.
+
+A person detection is an image box with per-edge pixel variance, taken by a camera whose pose at capture
+(``T_world_cam``: camera optical -> world NED) is known up to a 6x6 covariance. Two measurement models:
+
+* **height prior** (:func:`measurement_from_box`, ``mode="height_prior"``): the person is an upright
+  segment of height ``person_height_m`` (prior ~1.69 m). The rays through the box's top-centre and
+  bottom-centre pixels are intersected (least squares) with a vertical segment of that height; its midpoint
+  is the measured centre of the person. This handles a tilted camera exactly (no "range = f H / h"
+  small-angle assumption) and degrades gracefully; when the camera looks nearly straight down (top and
+  bottom rays nearly parallel to the vertical) the range is unobservable and it raises
+  :class:`DegenerateGeometryError` (use ``mode="bearing"``).
+* **bearing only** (``mode="bearing"``): the ray through the box centre placed at ``range_hint_m`` (from the
+  filter's prediction), or, without a hint, the ray through the box's bottom centre (the feet) meeting the
+  ground plane ``down = ground_down_m``, raised by half the prior height; the covariance is wide (``bearing_range_sigma_m``) along the ray, so in a Kalman
+  update it carries only the two bearing directions.
+
+The covariance is first-order propagation ``J diag(inputs) J^T`` of: the four box edges (per-edge pixel
+variance, floored at ``min_edge_var_px2``), the person-height prior (``person_height_sigma_m``), the camera
+position (3) and the camera orientation (3, small world-frame rotations ``R' = exp([dtheta]_x) R``, the
+convention of :attr:`shared_msgs.messages.Detections.T_world_cam_cov`). The Jacobian is central finite
+differences of the closed-form model (11 inputs, 23 evaluations of a 3x3 least-squares problem). The result
+is elongated along the viewing ray (range from box height is much less certain than bearing).
+
+Two covariances are returned: ``cov_m2`` (everything) and ``cov_no_cam_position_m2`` (without the camera
+position part). The cooperative filter uses the latter for its *own* detections, where the camera position
+error (GPS offset) is a filter state, and the former for teammates' detections.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from typing import Literal
+
+import numpy as np
+
+from shared_msgs.messages import BoundingBox, CameraInfo, Detections
+from skycap.errors import SkycapError
+
+__all__ = [
+    "PERSON_HEIGHT_PRIOR_M",
+    "CameraIntrinsics",
+    "PositionMeasurement",
+    "MeasurementError",
+    "DegenerateGeometryError",
+    "MeasurementConfig",
+    "measurement_from_box",
+    "measurements_from_detections",
+    "box_from_person",
+]
+
+log = logging.getLogger(__name__)
+
+PERSON_HEIGHT_PRIOR_M = 1.69
+"""Prior height of a standing person (AirCap's value), metres."""
+
+MeasurementMode = Literal["height_prior", "bearing"]
+
+
+class MeasurementError(SkycapError, ValueError):
+    """A detection that cannot be turned into a measurement (bad numbers, box behind the camera, ...)."""
+
+
+class DegenerateGeometryError(MeasurementError):
+    """Range from the height prior is unobservable (camera looking along the vertical); use bearing mode."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics (pixels; distortion assumed removed by the detector's box coordinates)."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    width_px: int
+    height_px: int
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) camera matrix."""
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @classmethod
+    def from_camera_info(cls, info: CameraInfo) -> "CameraIntrinsics":
+        return cls(info.fx_px, info.fy_px, info.cx_px, info.cy_px, info.width_px, info.height_px)
+
+
+@dataclasses.dataclass(frozen=True)
+class MeasurementConfig:
+    person_height_m: float = PERSON_HEIGHT_PRIOR_M
+    person_height_sigma_m: float = 0.08  #: adult height spread plus posture (not standing straight)
+    min_edge_var_px2: float = 4.0  #: floor for the per-edge variance (detectors report 0 = unknown)
+    bearing_range_sigma_m: float = 200.0  #: along-ray std of a bearing-only measurement
+    min_vertical_parallax_rad: float = math.radians(10.0)  #: view ray must be at least this far from the vertical
+    default_cam_position_var_m2: float = 1.0  #: used when Detections.T_world_cam_cov is empty
+    default_cam_rotation_var_rad2: float = 3e-4
+
+
+@dataclasses.dataclass(frozen=True)
+class PositionMeasurement:
+    """A 3D measurement of the person's centre (NED) from one detection.
+
+    position_ned_m: (3,); cov_m2 and cov_no_cam_position_m2: (3, 3); camera_position_ned_m: (3,) the
+    (reported) camera centre at capture; ``source_id`` the drone whose camera took it.
+    """
+
+    t_ns: int
+    source_id: str
+    position_ned_m: np.ndarray
+    cov_m2: np.ndarray
+    cov_no_cam_position_m2: np.ndarray
+    camera_position_ned_m: np.ndarray
+    mode: MeasurementMode
+    score: float = 1.0
+
+    def is_finite(self) -> bool:
+        return bool(
+            np.all(np.isfinite(self.position_ned_m))
+            and np.all(np.isfinite(self.cov_m2))
+            and np.all(np.isfinite(self.cov_no_cam_position_m2))
+        )
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vector (3,) -> (3, 3)."""
+    th = math.sqrt(float(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]))
+    if th < 1e-12:
+        return np.eye(3)
+    k = w / th
+    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(th) * Kx + (1.0 - math.cos(th)) * (Kx @ Kx)
+
+
+def _rays(K_inv: np.ndarray, R_wc: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """World-frame (unnormalised) ray directions for pixels uv (n, 2) -> (n, 3)."""
+    h = np.concatenate([uv, np.ones((uv.shape[0], 1))], axis=1)
+    return (R_wc @ (K_inv @ h.T)).T
+
+
+def _height_prior_point(
+    edges: np.ndarray, height_m: float, c: np.ndarray, R_wc: np.ndarray, K_inv: np.ndarray, min_parallax: float
+) -> np.ndarray:
+    """Centre of the vertical segment of length height_m whose ends lie on the top/bottom-centre rays."""
+    x0, y0, x1, y1 = edges
+    u = 0.5 * (x0 + x1)
+    r = _rays(K_inv, R_wc, np.array([[u, y0], [u, y1]]))
+    r_top, r_bot = r[0] / np.linalg.norm(r[0]), r[1] / np.linalg.norm(r[1])
+    down = np.array([0.0, 0.0, 1.0])
+    # b * r_bot - a * r_top = H * down  (least squares in (b, a))
+    # normal equations of the 3x2 system (well conditioned once the view check below passes)
+    cb = float(r_top @ r_bot)
+    det = 1.0 - cb * cb
+    if det < 1e-12:
+        raise DegenerateGeometryError("the box's top and bottom rays are parallel (zero-height box?); use mode='bearing'")
+    rhs_b, rhs_a = height_m * r_bot[2], -height_m * r_top[2]
+    b = (rhs_b + cb * rhs_a) / det
+    a = (rhs_a + cb * rhs_b) / det
+    r_mid = r_top + r_bot
+    sin_view = np.linalg.norm(np.cross(r_mid / np.linalg.norm(r_mid), down))
+    if sin_view < math.sin(min_parallax):
+        raise DegenerateGeometryError(
+            "camera looks along the vertical at the person: range from the height prior is unobservable; use mode='bearing'"
+        )
+    if a <= 0 or b <= 0:
+        raise DegenerateGeometryError(
+            f"the box's top and bottom rays do not bracket an upright person in front of the camera (ranges {a:.2f}, {b:.2f} m); use mode='bearing'"
+        )
+    return c + 0.5 * (a * r_top + b * r_bot)
+
+
+def _bearing_point(edges: np.ndarray, c: np.ndarray, R_wc: np.ndarray, K_inv: np.ndarray, range_m: float) -> np.ndarray:
+    x0, y0, x1, y1 = edges
+    r = _rays(K_inv, R_wc, np.array([[0.5 * (x0 + x1), 0.5 * (y0 + y1)]]))[0]
+    return c + range_m * r / np.linalg.norm(r)
+
+
+def measurement_from_box(
+    box: BoundingBox | np.ndarray,
+    intrinsics: CameraIntrinsics,
+    T_world_cam: np.ndarray,
+    T_world_cam_cov: np.ndarray | None = None,
+    *,
+    t_ns: int = 0,
+    source_id: str = "",
+    mode: MeasurementMode = "height_prior",
+    range_hint_m: float | None = None,
+    ground_down_m: float = 0.0,
+    edge_var_px2: np.ndarray | None = None,
+    config: MeasurementConfig = MeasurementConfig(),
+) -> PositionMeasurement:
+    """One box -> a 3D measurement of the person's centre with covariance.
+
+    Args:
+        box: a :class:`BoundingBox`, or (4,) edges (x_min, y_min, x_max, y_max) in pixels with
+            ``edge_var_px2`` (4,) beside it.
+        intrinsics: the camera's pinhole intrinsics.
+        T_world_cam: (4, 4) camera optical -> world NED at capture.
+        T_world_cam_cov: (6, 6) covariance of (position m, world-frame rotation rad) or None (defaults
+            from ``config``).
+        mode: "height_prior" or "bearing" (see module doc).
+        range_hint_m: bearing mode: range along the ray to place the point at (e.g. from the filter);
+            None = intersect with the plane ``down = ground_down_m - person_height_m / 2``.
+
+    Returns:
+        :class:`PositionMeasurement`.
+
+    Raises:
+        MeasurementError: non-finite input, an empty box, a box behind/off the ground plane;
+        DegenerateGeometryError: height prior unusable from this viewpoint.
+    """
+    if isinstance(box, BoundingBox):
+        edges = np.array([box.x_min_px, box.y_min_px, box.x_max_px, box.y_max_px], dtype=float)
+        ev = np.array([box.var_x_min_px2, box.var_y_min_px2, box.var_x_max_px2, box.var_y_max_px2], dtype=float)
+        score = float(box.score)
+    else:
+        edges = np.asarray(box, dtype=float).reshape(4)
+        ev = np.zeros(4) if edge_var_px2 is None else np.asarray(edge_var_px2, dtype=float).reshape(4)
+        score = 1.0
+    T = np.asarray(T_world_cam, dtype=float).reshape(4, 4)
+    if not (np.all(np.isfinite(edges)) and np.all(np.isfinite(ev)) and np.all(np.isfinite(T))):
+        raise MeasurementError("box edges, their variances and T_world_cam must be finite (got NaN/inf); drop the detection")
+    if edges[2] <= edges[0] or edges[3] <= edges[1]:
+        raise MeasurementError(f"empty box {edges.tolist()}: x_max must exceed x_min and y_max exceed y_min")
+    if T_world_cam_cov is None or np.size(T_world_cam_cov) == 0:
+        pose_cov = np.diag([config.default_cam_position_var_m2] * 3 + [config.default_cam_rotation_var_rad2] * 3)
+    else:
+        pose_cov = np.asarray(T_world_cam_cov, dtype=float).reshape(6, 6)
+        if not np.all(np.isfinite(pose_cov)):
+            raise MeasurementError("T_world_cam_cov contains NaN/inf; send an empty covariance to use defaults")
+    ev = np.maximum(ev, config.min_edge_var_px2)
+    K_inv = np.linalg.inv(intrinsics.K)
+    R0, c0 = T[:3, :3], T[:3, 3]
+    H = config.person_height_m
+
+    if mode == "bearing":
+        if range_hint_m is None:
+            # feet: the bottom-centre ray meets the ground plane; the centre is half the height above it
+            def model(e, h, dc, dth):
+                R = _rotvec_matrix(dth) @ R0
+                c = c0 + dc
+                r = _rays(K_inv, R, np.array([[0.5 * (e[0] + e[2]), e[3]]]))[0]
+                if r[2] <= 1e-6 or ground_down_m <= c[2]:
+                    raise MeasurementError("bearing ray does not meet the ground plane below the camera; pass range_hint_m")
+                feet = c + r * (ground_down_m - c[2]) / r[2]
+                return feet - np.array([0.0, 0.0, 0.5 * H])
+
+        else:
+            range_m = float(range_hint_m)
+            if not (math.isfinite(range_m) and range_m > 0):
+                raise MeasurementError(f"range_hint_m must be finite and > 0, got {range_hint_m}")
+
+            def model(e, h, dc, dth):
+                R = _rotvec_matrix(dth) @ R0
+                return _bearing_point(e, c0 + dc, R, K_inv, range_m)
+
+    elif mode == "height_prior":
+
+        def model(e, h, dc, dth):
+            R = _rotvec_matrix(dth) @ R0
+            return _height_prior_point(e, h, c0 + dc, R, K_inv, config.min_vertical_parallax_rad)
+
+    else:
+        raise MeasurementError(f"unknown measurement mode {mode!r}; use 'height_prior' or 'bearing'")
+
+    z0 = np.zeros(3)
+    p = model(edges, H, z0, z0)
+    if mode == "height_prior":
+        # in front of the camera
+        if (R0.T @ (p - c0))[2] <= 0:
+            raise MeasurementError("the measured person lies behind the camera; check T_world_cam")
+
+    # Jacobian by central differences over (4 edges, height, 3 cam position, 3 cam rotation)
+    steps = np.array([0.5] * 4 + [0.01] + [0.01] * 3 + [1e-4] * 3)
+    J = np.zeros((3, 11))
+    for i, s in enumerate(steps):
+        dp = np.zeros(11)
+        dp[i] = s
+        args_p = (edges + dp[:4], H + dp[4], dp[5:8], dp[8:11])
+        args_m = (edges - dp[:4], H - dp[4], -dp[5:8], -dp[8:11])
+        J[:, i] = (model(*args_p) - model(*args_m)) / (2 * s)
+    if mode == "bearing":
+        J[:, 4] = 0.0
+    Sigma_in = np.zeros((11, 11))
+    Sigma_in[:4, :4] = np.diag(ev)
+    Sigma_in[4, 4] = config.person_height_sigma_m**2
+    Sigma_in[5:, 5:] = pose_cov
+    cov = J @ Sigma_in @ J.T
+    Sigma_nc = Sigma_in.copy()
+    Sigma_nc[5:8, :] = 0.0
+    Sigma_nc[:, 5:8] = 0.0
+    cov_nc = J @ Sigma_nc @ J.T
+    if mode == "bearing":
+        r = (p - c0) / np.linalg.norm(p - c0)
+        along = config.bearing_range_sigma_m**2 * np.outer(r, r)
+        cov = cov + along
+        cov_nc = cov_nc + along
+    cov = 0.5 * (cov + cov.T)
+    cov_nc = 0.5 * (cov_nc + cov_nc.T)
+    return PositionMeasurement(
+        t_ns=int(t_ns),
+        source_id=source_id,
+        position_ned_m=p,
+        cov_m2=cov,
+        cov_no_cam_position_m2=cov_nc,
+        camera_position_ned_m=c0.copy(),
+        mode=mode,
+        score=score,
+    )
+
+
+def measurements_from_detections(
+    det: Detections,
+    intrinsics: CameraIntrinsics,
+    *,
+    mode: MeasurementMode = "height_prior",
+    fallback_to_bearing: bool = True,
+    range_hint_m: float | None = None,
+    ground_down_m: float = 0.0,
+    min_score: float = 0.0,
+    config: MeasurementConfig = MeasurementConfig(),
+) -> list[PositionMeasurement]:
+    """Every usable "person" box of a :class:`Detections` message -> measurements (bad boxes are skipped
+    and logged; a degenerate height-prior geometry falls back to bearing mode when allowed)."""
+    if len(det.T_world_cam) != 16:
+        raise MeasurementError(f"Detections.T_world_cam must have 16 floats, got {len(det.T_world_cam)}")
+    T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4)
+    cov = None
+    if len(det.T_world_cam_cov) == 36:
+        cov = np.asarray(det.T_world_cam_cov, dtype=float).reshape(6, 6)
+    elif len(det.T_world_cam_cov) not in (0,):
+        raise MeasurementError(f"Detections.T_world_cam_cov must have 36 floats or none, got {len(det.T_world_cam_cov)}")
+    out = []
+    for b in det.boxes:
+        if b.label != "person" or not (b.score >= min_score):
+            continue
+        kw = dict(t_ns=det.header.t_measurement_ns, source_id=det.header.sender_id, ground_down_m=ground_down_m, config=config)
+        try:
+            out.append(measurement_from_box(b, intrinsics, T, cov, mode=mode, range_hint_m=range_hint_m, **kw))
+        except DegenerateGeometryError:
+            if not fallback_to_bearing:
+                continue
+            try:
+                out.append(measurement_from_box(b, intrinsics, T, cov, mode="bearing", range_hint_m=range_hint_m, **kw))
+            except MeasurementError as e:
+                log.debug("dropped box from %s: %s", det.header.sender_id, e)
+        except MeasurementError as e:
+            log.debug("dropped box from %s: %s", det.header.sender_id, e)
+    return out
+
+
+def box_from_person(
+    center_ned_m: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    T_world_cam: np.ndarray,
+    person_height_m: float = PERSON_HEIGHT_PRIOR_M,
+    aspect_w_over_h: float = 0.4,
+) -> tuple[np.ndarray, float]:
+    """The image box of an upright person of given height centred at center_ned_m.
+
+    Returns ((4,) x_min, y_min, x_max, y_max in pixels, depth of the centre in m). The box's vertical edges
+    are the projections of the head top and feet; its width is ``aspect_w_over_h`` times its height. This is
+    the exact inverse of the height-prior model (used by tests and the ROI).
+    """
+    from skycap.frames import project_points
+
+    c = np.asarray(center_ned_m, dtype=float)
+    pts = np.stack([c - [0, 0, 0.5 * person_height_m], c + [0, 0, 0.5 * person_height_m], c])
+    uv, z = project_points(intrinsics.K, np.asarray(T_world_cam, dtype=float), pts)
+    u = float(uv[2, 0])
+    # keep the top/bottom pixels on the centre column like the model (exact for zero camera roll)
+    h = float(uv[1, 1] - uv[0, 1])
+    w = aspect_w_over_h * abs(h)
+    return np.array([u - 0.5 * w, uv[0, 1], u + 0.5 * w, uv[1, 1]]), float(z[2])

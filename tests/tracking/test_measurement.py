@@ -1,0 +1,133 @@
+import math
+
+import numpy as np
+import pytest
+
+from onboard.tracking.measurement import (
+    DegenerateGeometryError,
+    MeasurementError,
+    box_from_person,
+    measurement_from_box,
+    measurements_from_detections,
+)
+from shared_msgs.messages import BoundingBox, Detections
+from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose
+from tracking_scene import CAM, PERSON_HALF_H, look_at_pose
+
+POSE_COV = np.diag([0.0] * 6)
+
+
+def test_height_prior_recovers_position_centred():
+    cam = np.array([0.0, 0.0, -8.0])
+    person = np.array([8.0, 3.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, depth = box_from_person(person, CAM, T)
+    # hand check of the box: person in the image centre column, f H cos(depression) / depth pixels tall
+    d = person - cam
+    depression = math.atan2(d[2], math.hypot(d[0], d[1]))
+    assert abs(depth - np.linalg.norm(d)) < 1e-9
+    assert abs(0.5 * (box[0] + box[2]) - CAM.cx_px) < 1e-6
+    assert abs((box[3] - box[1]) / (1000.0 * 1.69 * math.cos(depression) / depth) - 1) < 0.01
+    m = measurement_from_box(box, CAM, T, POSE_COV, t_ns=5, source_id="d1")
+    np.testing.assert_allclose(m.position_ned_m, person, atol=1e-6)
+    assert m.t_ns == 5 and m.source_id == "d1" and m.mode == "height_prior"
+
+
+def test_height_prior_off_centre_and_rolled_camera():
+    cam = np.array([2.0, -1.0, -10.0])
+    person = np.array([9.0, 4.0, -PERSON_HALF_H])
+    # camera yawed 15 deg away from the person and slightly rolled: person off-centre in the image
+    d = person - cam
+    yaw = math.atan2(d[1], d[0]) + math.radians(15)
+    T = T_world_cam_from_pose(cam, R_world_body_from_euler(math.radians(3), 0.0, yaw), gimbal_pitch_rad=-0.8)
+    box, _ = box_from_person(person, CAM, T)
+    assert abs(0.5 * (box[0] + box[2]) - CAM.cx_px) > 100
+    m = measurement_from_box(box, CAM, T, POSE_COV)
+    assert np.linalg.norm(m.position_ned_m - person) < 0.15
+
+
+def test_covariance_elongated_along_ray_and_matches_monte_carlo():
+    rng = np.random.default_rng(0)
+    cam = np.array([0.0, 0.0, -8.0])
+    person = np.array([8.0, 0.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T)
+    var = np.full(4, 9.0)
+    m = measurement_from_box(box, CAM, T, POSE_COV, edge_var_px2=var)
+    w, V = np.linalg.eigh(m.cov_m2)
+    ray = (person - cam) / np.linalg.norm(person - cam)
+    assert abs(V[:, -1] @ ray) > 0.98, "largest uncertainty must lie along the viewing ray"
+    assert w[-1] > 20 * w[1]
+    # Monte Carlo over edge noise and the height prior
+    samples = []
+    for _ in range(3000):
+        b = box + rng.normal(0, 3.0, 4)
+        from onboard.tracking.measurement import MeasurementConfig
+
+        h = 1.69 + rng.normal(0, 0.08)
+        mm = measurement_from_box(b, CAM, T, POSE_COV, edge_var_px2=var, config=MeasurementConfig(person_height_m=h))
+        samples.append(mm.position_ned_m)
+    emp = np.cov(np.array(samples).T)
+    along_pred, along_emp = ray @ m.cov_m2 @ ray, ray @ emp @ ray
+    assert abs(along_emp / along_pred - 1) < 0.2
+    perp = np.cross(ray, [0, 0, 1.0])
+    perp /= np.linalg.norm(perp)
+    assert abs((perp @ emp @ perp) / (perp @ m.cov_m2 @ perp) - 1) < 0.2
+
+
+def test_camera_pose_covariance_adds_and_is_separated():
+    cam = np.array([0.0, 0.0, -8.0])
+    person = np.array([8.0, 0.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T)
+    cov = np.diag([1.0, 1.0, 1.0, 0, 0, 0])
+    m = measurement_from_box(box, CAM, T, cov)
+    # a camera position error moves the measurement one to one
+    np.testing.assert_allclose(m.cov_m2 - m.cov_no_cam_position_m2, np.eye(3), atol=1e-3)
+
+
+def test_bearing_mode_ground_plane_and_range_hint():
+    cam = np.array([0.0, 0.0, -8.0])
+    person = np.array([6.0, -5.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T)
+    m = measurement_from_box(box, CAM, T, POSE_COV, mode="bearing", ground_down_m=0.0)
+    # box centre is the centre of the person's projected segment; for this view it is within a few cm
+    assert np.linalg.norm(m.position_ned_m - person) < 0.1
+    ray = (m.position_ned_m - cam) / np.linalg.norm(m.position_ned_m - cam)
+    assert math.sqrt(ray @ m.cov_m2 @ ray) > 100
+    rng_hint = float(np.linalg.norm(person - cam))
+    m2 = measurement_from_box(box, CAM, T, POSE_COV, mode="bearing", range_hint_m=rng_hint)
+    assert abs(np.linalg.norm(m2.position_ned_m - cam) - rng_hint) < 1e-9
+
+
+def test_nadir_view_is_degenerate_and_detections_fall_back_to_bearing():
+    cam = np.array([0.0, 0.0, -15.0])
+    person = np.array([0.3, 0.2, -PERSON_HALF_H])
+    T = T_world_cam_from_pose(cam, np.eye(3), gimbal_pitch_rad=-math.pi / 2)
+    box, _ = box_from_person(person, CAM, T)
+    box = np.array([box[0] - 20, min(box[1], box[3]) - 5, box[2] + 20, max(box[1], box[3]) + 5])
+    with pytest.raises(DegenerateGeometryError):
+        measurement_from_box(box, CAM, T, POSE_COV)
+    det = Detections(
+        header=Detections.make_header("drone_2", 123),
+        camera_id="cam0",
+        frame_index=1,
+        detector="simulated",
+        mode="full",
+        boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9)],
+        width_px=1920,
+        height_px=1080,
+        T_world_cam=tuple(T.reshape(-1)),
+    )
+    ms = measurements_from_detections(det, CAM)
+    assert len(ms) == 1 and ms[0].mode == "bearing" and ms[0].source_id == "drone_2" and ms[0].t_ns == 123
+    assert np.linalg.norm(ms[0].position_ned_m[:2] - person[:2]) < 0.1
+
+
+def test_bad_input_raises_clear_errors():
+    T = look_at_pose(np.array([0, 0, -8.0]), np.array([8.0, 0, -1]))
+    with pytest.raises(MeasurementError, match="finite"):
+        measurement_from_box(np.array([1.0, np.nan, 3, 4]), CAM, T)
+    with pytest.raises(MeasurementError, match="empty box"):
+        measurement_from_box(np.array([10.0, 10, 5, 40]), CAM, T)
