@@ -1,0 +1,518 @@
+"""One simulated PX4 multirotor without I/O: commander (modes, arming, failsafes), controller, dynamics,
+estimator errors, battery. The MAVLink endpoint (:mod:`simulator.vehicle.mavlink_endpoint`) is a thin
+adapter that turns messages into the calls below and the state below into messages.
+
+Frames: the *world* frame is the simulator's NED frame about ``cfg.origin`` (truth and estimate live
+there). The vehicle's *local* frame (LOCAL_POSITION_NED, offboard NED setpoints) is the world frame
+shifted to the EKF origin ``local_origin_ned_m`` (the spawn point, as PX4, unless
+``vehicles.local_origin_at_spawn = false``).
+
+Times are seconds since the simulation started (monotonic), passed in by the caller.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from simulator.config import SimConfig
+from simulator.vehicle.controller import ControllerGains, ControllerLimits, PositionController, Setpoint
+from simulator.vehicle.dynamics import GRAVITY_M_S2, DynamicsLimits, MultirotorDynamics
+from simulator.vehicle.environment import Battery, EstimatorErrorModel
+from simulator.vehicle.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, ParamStore
+from simulator.vehicle.px4_modes import MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, FlightMode, flight_mode_from_px4
+from skycap.frames import ned_to_geodetic
+
+log = logging.getLogger(__name__)
+
+# MAV_RESULT
+ACCEPTED, TEMPORARILY_REJECTED, DENIED, UNSUPPORTED, FAILED = 0, 1, 2, 3, 4
+# MAV_LANDED_STATE
+LANDED_UNDEFINED, LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = 0, 1, 2, 3, 4
+FORCE_MAGIC = 21196.0
+
+OFFBOARD_LOSS_ACTIONS = {"hold": 5, "land": 4}  # PX4 COM_OBL_RC_ACT values
+
+
+@dataclass
+class VehicleTruth:
+    """Ground truth of one vehicle at one instant (world NED). Shapes: (3,), (3,), (3,3)."""
+
+    index: int
+    system_id: int
+    t_ns: int
+    position_ned_m: np.ndarray
+    velocity_ned_m_s: np.ndarray
+    R_world_body: np.ndarray
+    armed: bool
+    flight_mode: str
+    landed: bool
+
+
+def yaw_from_R(R: np.ndarray) -> float:
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def euler_from_R(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) rad of R_world_body (ZYX), without scipy (hot path)."""
+    return (
+        math.atan2(R[2, 1], R[2, 2]),
+        -math.asin(max(-1.0, min(1.0, R[2, 0]))),
+        math.atan2(R[1, 0], R[0, 0]),
+    )
+
+
+def quat_wxyz_from_R(R: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        return 0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s
+    if R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
+        return (R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s
+    if R[1, 1] > R[2, 2]:
+        s = math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
+        return (R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s
+    s = math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
+    return (R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s
+
+
+def R_from_quat_wxyz(q) -> np.ndarray:
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def default_params(cfg: SimConfig, system_id: int) -> list[Param]:
+    """The PX4 parameters this simulator honours (names and units as PX4)."""
+    L, F = cfg.limits, cfg.failsafe
+    R, I = MAV_PARAM_TYPE_REAL32, MAV_PARAM_TYPE_INT32
+    return [
+        Param("MIS_TAKEOFF_ALT", cfg.takeoff_alt_m, R),
+        Param("MPC_XY_VEL_MAX", L.max_speed_xy_m_s, R),
+        Param("MPC_XY_CRUISE", cfg.cruise_speed_m_s, R),
+        Param("MPC_Z_VEL_MAX_UP", L.max_speed_up_m_s, R),
+        Param("MPC_Z_VEL_MAX_DN", L.max_speed_down_m_s, R),
+        Param("MPC_ACC_HOR_MAX", L.max_accel_xy_m_s2, R),
+        Param("MPC_ACC_UP_MAX", L.max_accel_z_m_s2, R),
+        Param("MPC_TILTMAX_AIR", L.max_tilt_deg, R),
+        Param("MPC_YAWRAUTO_MAX", L.max_yaw_rate_deg_s, R),
+        Param("MPC_TKO_SPEED", min(1.5, L.max_speed_up_m_s), R),
+        Param("MPC_LAND_SPEED", min(0.7, L.max_speed_down_m_s), R),
+        Param("RTL_RETURN_ALT", cfg.rtl_return_alt_m, R),
+        Param("COM_OF_LOSS_T", F.offboard_loss_timeout_s, R),
+        Param("COM_OBL_RC_ACT", OFFBOARD_LOSS_ACTIONS[F.offboard_loss_action], I),
+        Param("COM_DISARM_LAND", F.disarm_after_land_s, R),
+        Param("COM_DISARM_PRFLT", F.disarm_preflight_s, R),
+        Param("BAT_CRIT_THR", cfg.battery.critical_percent / 100.0, R),
+        Param("MAV_SYS_ID", system_id, I),
+        Param("SYS_AUTOSTART", 4001, I),  # x500-class quadrotor airframe
+        Param("COM_RC_IN_MODE", 4, I),  # RC not required (offboard/API only)
+    ]
+
+
+class SimVehicle:
+    """One PX4-like multirotor. Drive it with :meth:`step`; command it with the ``cmd_*`` / setpoint methods.
+
+    Args:
+        index: 0-based vehicle index (system id = index + 1).
+        cfg: the simulator configuration (validated).
+        seed: randomness of the estimator errors.
+    """
+
+    def __init__(self, index: int, cfg: SimConfig, seed: int | None = None):
+        self.index = index
+        self.system_id = index + 1
+        self.cfg = cfg
+        spawn = np.array(cfg.spawn_ned_m(index), dtype=float)
+        self.spawn_ned_m = spawn
+        self.local_origin_ned_m = spawn.copy() if cfg.vehicles.local_origin_at_spawn else np.zeros(3)
+        L = cfg.limits
+        self.dyn = MultirotorDynamics(
+            DynamicsLimits(
+                max_tilt_rad=math.radians(L.max_tilt_deg) * 1.05,  # airframe can tilt a bit more than commanded
+                max_yaw_rate_rad_s=math.radians(L.max_yaw_rate_deg_s) * 1.5,
+                attitude_time_constant_s=L.attitude_time_constant_s,
+                drag_per_mass_1_s=L.drag_per_mass_1_s,
+            ),
+            position_ned_m=spawn,
+            yaw_rad=math.radians(cfg.vehicles.spawn_yaw_deg),
+        )
+        c = cfg.controller
+        self.ctrl = PositionController(
+            ControllerLimits(),
+            ControllerGains(c.pos_xy_p, c.pos_z_p, c.vel_xy_p, c.vel_xy_i, c.vel_z_p, c.vel_z_i, c.yaw_p),
+        )
+        self.est_model = EstimatorErrorModel(cfg.estimator, seed=cfg.estimator.seed * 1000 + index if seed is None else seed)
+        self.battery = Battery(cfg.battery)
+        self.params = ParamStore(default_params(cfg, self.system_id), on_change=self._on_param_change)
+        self._apply_params()
+
+        self.t_s = 0.0
+        self.armed = False
+        self.mode = FlightMode.HOLD
+        self.gps_ok = False
+        self.home_ned_m: np.ndarray | None = None  # world frame (estimate), set at GPS fix and on arming
+        self.status_texts: list[tuple[int, str]] = []  # (MAV_SEVERITY, text) for the endpoint to send
+        self._armed_at_s = 0.0
+        self._has_flown = False
+        self._landed_since_s: float | None = 0.0
+        self._hold_target: np.ndarray | None = None
+        self._hold_speed_m_s = math.nan
+        self._hold_yaw = math.nan
+        self._takeoff_target: np.ndarray | None = None
+        self._land_xy: np.ndarray | None = None
+        self._rtl_phase = ""
+        self._rtl_alt_d = 0.0
+        self._offboard_sp: Setpoint | None = None
+        self._offboard_sp_t_s = -math.inf
+        self._battery_failsafe_done = False
+        self._update_estimate()
+
+    # ------------------------------------------------------------------ parameters
+    def _apply_params(self) -> None:
+        p, lim = self.params, self.ctrl.limits
+        lim.max_speed_xy_m_s = float(p["MPC_XY_VEL_MAX"])
+        lim.max_speed_up_m_s = float(p["MPC_Z_VEL_MAX_UP"])
+        lim.max_speed_down_m_s = float(p["MPC_Z_VEL_MAX_DN"])
+        lim.max_accel_xy_m_s2 = float(p["MPC_ACC_HOR_MAX"])
+        lim.max_accel_z_m_s2 = float(p["MPC_ACC_UP_MAX"])
+        lim.max_tilt_rad = math.radians(float(p["MPC_TILTMAX_AIR"]))
+        lim.max_yaw_rate_rad_s = math.radians(float(p["MPC_YAWRAUTO_MAX"]))
+
+    def _on_param_change(self, name: str, value) -> None:
+        log.info("vehicle %d: param %s = %s", self.system_id, name, value)
+        self._apply_params()
+
+    # ------------------------------------------------------------------ state access
+    @property
+    def truth(self):
+        return self.dyn.state
+
+    @property
+    def landed(self) -> bool:
+        return self.dyn.state.on_ground
+
+    def truth_snapshot(self, t_ns: int) -> VehicleTruth:
+        s = self.dyn.state
+        return VehicleTruth(
+            index=self.index,
+            system_id=self.system_id,
+            t_ns=t_ns,
+            position_ned_m=s.position_ned_m.copy(),
+            velocity_ned_m_s=s.velocity_ned_m_s.copy(),
+            R_world_body=s.R_world_body.copy(),
+            armed=self.armed,
+            flight_mode=self.mode.name,
+            landed=s.on_ground,
+        )
+
+    def _update_estimate(self) -> None:
+        s = self.dyn.state
+        self.est_position_ned_m, self.est_velocity_ned_m_s, self.est_R_world_body = self.est_model.estimate(
+            s.position_ned_m, s.velocity_ned_m_s, s.R_world_body
+        )
+        self.est_yaw_rad = yaw_from_R(self.est_R_world_body)
+
+    @property
+    def est_local_position_ned_m(self) -> np.ndarray:
+        return self.est_position_ned_m - self.local_origin_ned_m
+
+    def geodetic(self, world_ned_m: np.ndarray) -> tuple[float, float, float]:
+        o = self.cfg.origin
+        lat, lon, alt = ned_to_geodetic(world_ned_m, o.lat_deg, o.lon_deg, o.alt_m)
+        return float(lat), float(lon), float(alt)
+
+    @property
+    def landed_state(self) -> int:
+        if self.landed:
+            return LANDED_ON_GROUND
+        if self.mode == FlightMode.TAKEOFF:
+            return LANDED_TAKEOFF
+        if self.mode == FlightMode.LAND or (self.mode == FlightMode.RETURN and self._rtl_phase == "land"):
+            return LANDED_LANDING
+        return LANDED_IN_AIR
+
+    def offboard_setpoint_fresh(self) -> bool:
+        return self.t_s - self._offboard_sp_t_s <= float(self.params["COM_OF_LOSS_T"])
+
+    def _say(self, severity: int, text: str) -> None:
+        log.info("vehicle %d: %s", self.system_id, text)
+        self.status_texts.append((severity, text))
+
+    # ------------------------------------------------------------------ commands (return MAV_RESULT)
+    def cmd_arm(self, arm: bool, force: bool = False) -> int:
+        if arm:
+            if self.armed:
+                return ACCEPTED
+            if not force:
+                if not self.gps_ok:
+                    self._say(4, "Arming denied: no GPS fix")
+                    return DENIED
+                if self._battery_critical():
+                    self._say(4, "Arming denied: battery critical")
+                    return DENIED
+                if self.mode == FlightMode.OFFBOARD and not self.offboard_setpoint_fresh():
+                    self._say(4, "Arming denied: no offboard signal")
+                    return DENIED
+            self.armed = True
+            self._armed_at_s = self.t_s
+            self._has_flown = False
+            self._landed_since_s = self.t_s if self.landed else None
+            self.home_ned_m = self.est_position_ned_m.copy()  # PX4 sets home on arming
+            self.ctrl.reset()
+            self._say(6, "Armed")
+            return ACCEPTED
+        if not self.armed:
+            return ACCEPTED
+        if not self.landed and not force:
+            self._say(4, "Disarming denied: not landed")
+            return DENIED
+        self._disarm("Disarmed by command")
+        return ACCEPTED
+
+    def _disarm(self, why: str) -> None:
+        self.armed = False
+        self._say(6, why)
+
+    def cmd_takeoff(self, altitude_amsl_m: float = math.nan) -> int:
+        if not self.armed:
+            self._say(4, "Takeoff denied: disarmed")
+            return TEMPORARILY_REJECTED
+        home_d = self.home_ned_m[2] if self.home_ned_m is not None else self.est_position_ned_m[2]
+        if math.isfinite(altitude_amsl_m):
+            target_d = self.cfg.origin.alt_m - altitude_amsl_m
+        else:
+            target_d = home_d - float(self.params["MIS_TAKEOFF_ALT"])
+        self._takeoff_target = np.array([self.est_position_ned_m[0], self.est_position_ned_m[1], target_d])
+        self._set_mode(FlightMode.TAKEOFF)
+        return ACCEPTED
+
+    def cmd_land(self) -> int:
+        self._set_mode(FlightMode.LAND)
+        return ACCEPTED
+
+    def cmd_return(self) -> int:
+        if self.home_ned_m is None:
+            return TEMPORARILY_REJECTED
+        if not self.armed or self.landed:
+            return TEMPORARILY_REJECTED
+        self._set_mode(FlightMode.RETURN)
+        return ACCEPTED
+
+    def cmd_hold(self) -> int:
+        self._set_mode(FlightMode.HOLD)
+        return ACCEPTED
+
+    def cmd_set_mode(self, base_mode: float, main_mode: float, sub_mode: float) -> int:
+        """MAV_CMD_DO_SET_MODE with PX4 custom modes."""
+        if not int(base_mode) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return UNSUPPORTED
+        fm = flight_mode_from_px4(int(main_mode), int(sub_mode))
+        if fm is None:
+            return UNSUPPORTED
+        if fm == self.mode:
+            return ACCEPTED
+        if fm == FlightMode.HOLD:
+            return self.cmd_hold()
+        if fm == FlightMode.LAND:
+            return self.cmd_land()
+        if fm == FlightMode.RETURN:
+            return self.cmd_return()
+        if fm == FlightMode.TAKEOFF:
+            return self.cmd_takeoff()
+        if fm == FlightMode.OFFBOARD:
+            if not self.offboard_setpoint_fresh():
+                self._say(4, "Switching to Offboard is currently not available: no offboard signal")
+                return TEMPORARILY_REJECTED
+            self._set_mode(FlightMode.OFFBOARD)
+            return ACCEPTED
+        if fm == FlightMode.MISSION:
+            self._say(4, "Mission rejected: no mission")
+            return TEMPORARILY_REJECTED
+        # manual modes need an RC link this simulator does not have
+        self._say(4, f"Switching to {fm.name} is currently not available: no manual control input")
+        return TEMPORARILY_REJECTED
+
+    def cmd_reposition(self, world_ned_m: np.ndarray, yaw_rad: float = math.nan, speed_m_s: float = math.nan) -> int:
+        """MAV_CMD_DO_REPOSITION (MAVSDK goto_location): fly to a point and hold there. NaN = keep."""
+        if not self.armed or self.landed:
+            return TEMPORARILY_REJECTED
+        target = self.est_position_ned_m.copy() if self._hold_target is None else self._hold_target.copy()
+        for k in range(3):
+            if math.isfinite(world_ned_m[k]):
+                target[k] = world_ned_m[k]
+        self._set_mode(FlightMode.HOLD)
+        self._hold_target = target
+        self._hold_yaw = yaw_rad
+        self._hold_speed_m_s = float(self.params["MPC_XY_CRUISE"]) if math.isnan(speed_m_s) else speed_m_s
+        return ACCEPTED
+
+    def cmd_change_speed(self, speed_m_s: float) -> int:
+        if speed_m_s <= 0 or not math.isfinite(speed_m_s):
+            return DENIED
+        self._hold_speed_m_s = speed_m_s
+        return ACCEPTED
+
+    def set_offboard_setpoint(self, sp: Setpoint) -> None:
+        """A new offboard setpoint in the *local* frame (as received); refreshes the offboard signal."""
+        if not np.all(np.isnan(sp.position_ned_m)):
+            sp.position_ned_m = sp.position_ned_m + self.local_origin_ned_m
+        self._offboard_sp = sp
+        self._offboard_sp_t_s = self.t_s
+
+    def _set_mode(self, mode: FlightMode) -> None:
+        if mode == self.mode and mode != FlightMode.TAKEOFF:
+            return
+        prev = self.mode
+        self.mode = mode
+        self._hold_yaw = self.est_yaw_rad
+        p = self.est_position_ned_m
+        v = self.est_velocity_ned_m_s
+        if mode == FlightMode.HOLD:
+            # brake to a stop, then hold where it stopped (PX4 computes a braking point too)
+            a = max(float(self.params["MPC_ACC_HOR_MAX"]) * 0.8, 0.5)
+            self._hold_target = p + v * np.abs(v) / (2.0 * a) * np.array([1.0, 1.0, 0.0])
+            self._hold_speed_m_s = math.nan
+            self._hold_yaw = self.est_yaw_rad
+        elif mode == FlightMode.LAND:
+            self._land_xy = p[:2].copy()
+        elif mode == FlightMode.RETURN:
+            self._rtl_phase = "climb"
+            self._rtl_alt_d = min(p[2], self.home_ned_m[2] - float(self.params["RTL_RETURN_ALT"]))
+        if prev != mode:
+            log.info("vehicle %d: mode %s -> %s", self.system_id, prev.name, mode.name)
+
+    def _battery_critical(self) -> bool:
+        thr = float(self.params["BAT_CRIT_THR"]) * 100.0
+        return thr > 0 and self.battery.remaining_pct <= thr
+
+    # ------------------------------------------------------------------ simulation step
+    def step(self, t_s: float, dt_s: float, wind_ned_m_s: np.ndarray) -> None:
+        """Advance to ``t_s`` (seconds since start) by ``dt_s``: estimator, commander, controller, physics."""
+        self.t_s = t_s
+        self.est_model.step(dt_s)
+        self._update_estimate()
+        if not self.gps_ok and t_s >= self.cfg.estimator.gps_lock_delay_s:
+            self.gps_ok = True
+            self.home_ned_m = self.est_position_ned_m.copy()
+            self._say(6, "GPS fix, home set")
+        self._commander(t_s)
+        sp = self._mode_setpoint()
+        body_z, thrust, yaw_rate = self.ctrl.update(
+            dt_s, sp, self.est_position_ned_m, self.est_velocity_ned_m_s, self.est_yaw_rad, self.landed
+        )
+        if self.armed and self.landed and self._wants_ground(sp):
+            thrust = min(thrust, 0.5 * GRAVITY_M_S2)  # idle on the ground
+        self.dyn.step(dt_s, body_z, thrust, yaw_rate, wind_ned_m_s, motors_on=self.armed)
+        self.battery.step(dt_s, self.armed, self.dyn.state.thrust_m_s2 / GRAVITY_M_S2)
+
+    def _wants_ground(self, sp: Setpoint) -> bool:
+        if sp.body_z_cmd is not None:
+            return False
+        if not math.isnan(sp.position_ned_m[2]):
+            return sp.position_ned_m[2] > self.est_position_ned_m[2] - 0.2
+        if not math.isnan(sp.velocity_ned_m_s[2]):
+            return sp.velocity_ned_m_s[2] >= 0.0
+        return True
+
+    def _commander(self, t_s: float) -> None:
+        landed = self.landed
+        if not self.armed:
+            self._landed_since_s = t_s if landed else None
+            return
+        if not landed:
+            self._has_flown = True
+            self._landed_since_s = None
+        elif self._landed_since_s is None:
+            self._landed_since_s = t_s
+        # auto-disarm (COM_DISARM_LAND / COM_DISARM_PRFLT)
+        if landed:
+            t_land = float(self.params["COM_DISARM_LAND"])
+            t_pre = float(self.params["COM_DISARM_PRFLT"])
+            if self._has_flown and t_land >= 0 and t_s - self._landed_since_s >= t_land:
+                self._disarm("Disarmed by auto disarm on land")
+                return
+            if not self._has_flown and t_pre > 0 and t_s - self._armed_at_s >= t_pre and self.mode != FlightMode.TAKEOFF:
+                self._disarm("Disarmed by auto preflight disarming")
+                return
+        # offboard loss failsafe (COM_OF_LOSS_T, then COM_OBL_RC_ACT)
+        if self.mode == FlightMode.OFFBOARD and not self.offboard_setpoint_fresh():
+            act = int(self.params["COM_OBL_RC_ACT"])
+            self._say(4, "Failsafe: no offboard signal")
+            self._set_mode(FlightMode.LAND if act == 4 else FlightMode.HOLD)
+        # battery failsafe
+        if not self._battery_failsafe_done and self._battery_critical() and not landed:
+            self._battery_failsafe_done = True
+            self._say(2, "Failsafe: battery critical, returning")
+            if self.home_ned_m is not None:
+                self._set_mode(FlightMode.RETURN)
+            else:
+                self._set_mode(FlightMode.LAND)
+
+    def _mode_setpoint(self) -> Setpoint:
+        p = self.est_position_ned_m
+        P = self.params
+        if not self.armed:
+            return Setpoint()
+        m = self.mode
+        if m == FlightMode.OFFBOARD and self._offboard_sp is not None:
+            return self._offboard_sp
+        if m == FlightMode.TAKEOFF and self._takeoff_target is not None:
+            tgt = self._takeoff_target
+            if abs(p[2] - tgt[2]) < 0.15:
+                self._say(6, "Takeoff complete")
+                self._set_mode(FlightMode.HOLD)
+                self._hold_target = tgt.copy()
+                return self._mode_setpoint()
+            return Setpoint(position_ned_m=tgt.copy(), yaw_rad=self._hold_yaw_or_current(),
+                            max_speed_up_m_s=float(P["MPC_TKO_SPEED"]))
+        if m == FlightMode.LAND:
+            xy = self._land_xy if self._land_xy is not None else p[:2]
+            return Setpoint(
+                position_ned_m=np.array([xy[0], xy[1], np.nan]),
+                velocity_ned_m_s=np.array([np.nan, np.nan, float(P["MPC_LAND_SPEED"])]),
+                yaw_rad=self._hold_yaw_or_current(),
+            )
+        if m == FlightMode.RETURN and self.home_ned_m is not None:
+            home = self.home_ned_m
+            cruise = float(P["MPC_XY_CRUISE"])
+            if self._rtl_phase == "climb":
+                if p[2] <= self._rtl_alt_d + 0.3:
+                    self._rtl_phase = "return"
+                return Setpoint(position_ned_m=np.array([p[0], p[1], self._rtl_alt_d]) if self._rtl_phase == "climb"
+                                else np.array([home[0], home[1], self._rtl_alt_d]), max_speed_xy_m_s=cruise,
+                                yaw_rad=self._hold_yaw_or_current())
+            if self._rtl_phase == "return":
+                if math.hypot(p[0] - home[0], p[1] - home[1]) < 0.5:
+                    self._rtl_phase = "land"
+                return Setpoint(position_ned_m=np.array([home[0], home[1], self._rtl_alt_d]), max_speed_xy_m_s=cruise,
+                                yaw_rad=self._hold_yaw_or_current())
+            return Setpoint(
+                position_ned_m=np.array([home[0], home[1], np.nan]),
+                velocity_ned_m_s=np.array([np.nan, np.nan, float(P["MPC_LAND_SPEED"])]),
+                yaw_rad=self._hold_yaw_or_current(),
+            )
+        # HOLD (and any other mode): hold a point; on the ground stay there
+        if self.landed and (self._hold_target is None or self._hold_target[2] >= p[2] - 0.2):
+            return Setpoint(velocity_ned_m_s=np.array([0.0, 0.0, 0.5]))
+        if self._hold_target is None:
+            self._hold_target = p.copy()
+        return Setpoint(position_ned_m=self._hold_target.copy(), yaw_rad=self._hold_yaw_or_current(),
+                        max_speed_xy_m_s=self._hold_speed_m_s)
+
+    def _hold_yaw_or_current(self) -> float:
+        if math.isnan(self._hold_yaw):
+            self._hold_yaw = self.est_yaw_rad
+        return self._hold_yaw
