@@ -8,9 +8,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from onboard.transport import TransportConfig
 from skycap.config import ConfigError
 
-__all__ = ["AgentConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig", "ZenohConfig"]
+__all__ = ["AgentConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
 
 
 @dataclass
@@ -71,12 +72,17 @@ class RecordConfig:
 
 
 @dataclass
-class ZenohConfig:
-    """Zenoh session: empty lists = Zenoh defaults (peer mode, multicast scouting)."""
+class OriginConfig:
+    """Geodetic origin of the flight's world NED frame (WGS-84, altitude AMSL).
 
-    mode: str = "peer"
-    connect: list[str] = field(default_factory=list)
-    listen: list[str] = field(default_factory=list)
+    The autopilot's local NED frame is about its own EKF origin (PX4: where it got its first fix); the
+    agent converts between the two with the vehicle's global position. Default: PX4 SITL's field, the
+    built-in simulator's default origin.
+    """
+
+    lat_deg: float = 47.397742
+    lon_deg: float = 8.545594
+    alt_m: float = 488.0
 
 
 @dataclass
@@ -91,11 +97,13 @@ class AgentConfig:
     connect_timeout_s: float = 30.0
     #: MAVLink identity of this companion computer
     mavlink_component: str = "companion_computer"
+    origin: OriginConfig = field(default_factory=OriginConfig)
     rates: RatesConfig = field(default_factory=RatesConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
-    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    #: Zenoh session (default: a local peer joining the rendezvous at tcp/127.0.0.1:7447)
+    transport: TransportConfig = field(default_factory=TransportConfig)
     #: record the simulator's keypoints (sim/keypoints2d) and camera frames of this drone
     record_camera: bool = True
 

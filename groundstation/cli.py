@@ -1,0 +1,104 @@
+"""``skycap fleet ...``: send plans and commands to the fleet and watch it, over Zenoh.
+
+    skycap fleet plan --drones drone_1,drone_2,drone_3 --radius 8 --altitude 6 --speed 0.15
+    skycap fleet cmd takeoff                    # every drone
+    skycap fleet cmd land --target drone_2
+    skycap fleet watch                          # table of the fleet, and the ground-station heartbeat
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fleet", help="fleet client: send a plan or commands, watch the fleet (over Zenoh)")
+    p.add_argument("--fleet", default="default", help="fleet id (default: default)")
+    p.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447", help="Zenoh endpoint to join")
+    verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
+
+    pl = verbs.add_parser("plan", help="send an orbit plan (drones evenly spaced on one circle)")
+    pl.add_argument("--drones", required=True, help="comma-separated drone ids in slot order, e.g. drone_1,drone_2")
+    pl.add_argument("--center", default="0,0,0", help="orbit centre north,east,down in metres (default 0,0,0)")
+    pl.add_argument("--radius", type=float, default=8.0, help="radius_m (default 8)")
+    pl.add_argument("--altitude", type=float, default=6.0, help="altitude_m above ground (default 6)")
+    pl.add_argument("--speed", type=float, default=0.15, help="angular speed rad/s (default 0.15)")
+    pl.add_argument("--direction", type=int, choices=(1, -1), default=1, help="1 clockwise from above, -1 anti")
+    pl.add_argument("--start-in", type=float, default=5.0, help="shared start time, seconds from now (default 5)")
+    pl.add_argument("--min-separation", type=float, default=3.0, help="min_separation_m (default 3)")
+    pl.add_argument("--wait", type=float, default=3.0, help="seconds to wait for the acks")
+    pl.set_defaults(func=_plan)
+
+    c = verbs.add_parser("cmd", help="send a fleet command and print the acks")
+    c.add_argument("action", choices=["arm", "takeoff", "start", "pause", "land", "return", "disarm"])
+    c.add_argument("--target", default="*", help="drone id, or * for every drone (default)")
+    c.add_argument("--altitude", type=float, default=None, help="takeoff altitude_m")
+    c.add_argument("--wait", type=float, default=3.0, help="seconds to wait for the acks")
+    c.set_defaults(func=_cmd)
+
+    w = verbs.add_parser("watch", help="print the fleet table every second (and send the ground-station heartbeat)")
+    w.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
+    w.add_argument("--period", type=float, default=1.0, help="seconds between tables")
+    w.set_defaults(func=_watch)
+
+
+def _client(args, heartbeat_hz: float = 2.0):
+    import time
+
+    from groundstation.fleet import FleetClient
+    from onboard.transport import TransportConfig
+
+    client = FleetClient.open(args.fleet, TransportConfig.local_peer(args.zenoh_connect), heartbeat_hz=heartbeat_hz)
+    time.sleep(1.0)  # let Zenoh connect and the presence of the drones arrive
+    return client
+
+
+def _print_acks(acks, expect) -> int:
+    bad = 0
+    for d in sorted(set(expect) | set(acks)):
+        a = acks.get(d)
+        if a is None:
+            print(f"{d}: no answer")
+            bad += 1
+        else:
+            print(f"{d}: {a.result}{' - ' + a.reason if a.reason else ''}")
+            bad += a.result in ("refused", "failed")
+    return 1 if bad else 0
+
+
+def _plan(args) -> int:
+    from groundstation.fleet import make_orbit_plan
+
+    center = tuple(float(x) for x in args.center.split(","))
+    if len(center) != 3:
+        print("--center must be north,east,down (three numbers)", file=sys.stderr)
+        return 2
+    ids = [d.strip() for d in args.drones.split(",") if d.strip()]
+    plan = make_orbit_plan(ids, center, args.radius, args.altitude, args.speed, args.direction, args.start_in,
+                           min_separation_m=args.min_separation)
+    with _client(args) as fleet:
+        fleet.send_plan(plan)
+        acks = fleet.wait_acks(plan.plan_id, ids, args.wait, ("accepted", "refused"))
+        return _print_acks(acks, ids)
+
+
+def _cmd(args) -> int:
+    params = {"altitude_m": args.altitude} if args.altitude is not None else {}
+    with _client(args) as fleet:
+        expect = [args.target] if args.target != "*" else sorted(d for d in fleet.alive if d.startswith("drone"))
+        acks = fleet.command(args.action, args.target, params, wait_s=args.wait, expect=expect,
+                             results=("accepted", "refused", "failed"))
+        return _print_acks(acks, expect)
+
+
+def _watch(args) -> int:
+    import time
+
+    with _client(args) as fleet:
+        t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
+        while time.monotonic() < t_end:
+            print(fleet.table(), flush=True)
+            print(flush=True)
+            time.sleep(args.period)
+    return 0

@@ -1,0 +1,440 @@
+"""The onboard agent: one process per drone, on its companion computer.
+
+It connects to its autopilot (:class:`onboard.autopilot.MavsdkAutopilot`, MAVSDK as a companion
+computer), joins the fleet over Zenoh (:class:`onboard.transport.Transport`), takes plans and commands
+from the ground station and answers each with a :class:`~shared_msgs.CommandAck`, flies its slot of the
+orbit by streaming offboard setpoints, watches the ground-station heartbeat and the battery, and records
+everything it sees to its MCAP file (:mod:`onboard.recorder`).
+
+Parts (so that perception, tracking and formation control plug in without rewrites):
+
+* ``mission`` -- :class:`onboard.mission.Mission`, the pure state machine; validation in
+  :func:`onboard.mission.validate_command` / :func:`~onboard.mission.validate_plan`.
+* ``source`` -- the current :class:`onboard.orbit.SetpointSource` (``OrbitController`` now, a formation
+  MPC later), asked for one setpoint per control tick.
+* ``perception`` -- a list of :class:`PerceptionStage`; each camera frame goes through them in order and
+  what they return is published and recorded (a detector, a keypoint model, a target tracker).
+* ``autopilot`` -- the thin MAVSDK adapter; ``bus`` -- the Zenoh transport; ``recorder`` -- the MCAP writer.
+
+Loops (asyncio, one thread + MAVSDK's and Zenoh's own): the control loop (``rates.setpoint_hz``), the
+supervisor (10 Hz: vehicle events, failsafes, health heartbeat) and the telemetry callbacks (50 Hz:
+record state, publish it at ``rates.state_publish_hz``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+import signal
+import time
+from collections import deque
+from typing import Any, Protocol
+
+import msgspec
+import numpy as np
+
+from shared_msgs import (
+    CameraFrame,
+    CameraInfo,
+    Command,
+    CommandAck,
+    Health,
+    Keypoints2D,
+    Message,
+    OrbitPlan,
+    VehicleState,
+    encode,
+    keys,
+    now_ns,
+    stamp_sent,
+)
+from onboard.config import AgentConfig
+from onboard.recorder import channel_name
+from onboard.mission import Action, Mission, State, validate_command, validate_plan
+from onboard.orbit import HoldSource, OrbitController, Setpoint, SetpointSource
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Agent", "PerceptionStage", "RateMeter", "yaw_from_q"]
+
+
+class PerceptionStage(Protocol):
+    """One step of the onboard perception pipeline (detector, keypoints, tracker ...).
+
+    ``process(frame, info, state)`` gets a camera frame, the latest camera info and the vehicle state at
+    hand, and returns ``(topic, message)`` pairs to publish on this drone's keys and record.
+    """
+
+    name: str
+
+    def process(self, frame: CameraFrame, info: CameraInfo | None, state: VehicleState | None) -> list[tuple[str, Message]]: ...
+
+
+class RateMeter:
+    """Events per second over a sliding window (for the health report)."""
+
+    def __init__(self, window_s: float = 2.0):
+        self.window_s = window_s
+        self._t: deque[float] = deque()
+
+    def tick(self, t_s: float | None = None) -> None:
+        self._t.append(time.monotonic() if t_s is None else t_s)
+
+    def rate_hz(self, t_s: float | None = None) -> float:
+        now = time.monotonic() if t_s is None else t_s
+        while self._t and self._t[0] < now - self.window_s:
+            self._t.popleft()
+        return len(self._t) / self.window_s
+
+
+def yaw_from_q(q_wxyz) -> float:
+    """Heading (rad, 0 = north, + = east) of a body FRD -> NED quaternion (w, x, y, z)."""
+    w, x, y, z = q_wxyz
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+class Agent:
+    """One drone's agent. ``await agent.run(stop)`` until ``stop`` is set (SIGTERM), then shut down cleanly."""
+
+    def __init__(self, cfg: AgentConfig, bus: Any, autopilot: Any, recorder: Any = None,
+                 perception: list[PerceptionStage] | None = None):
+        self.cfg = cfg.validate()
+        self.id = cfg.drone_id
+        self.bus = bus
+        self.autopilot = autopilot
+        self.recorder = recorder
+        self.perception: list[PerceptionStage] = list(perception or [])
+        self.mission = Mission()
+        self.source: SetpointSource | None = None
+        self.last_setpoint: Setpoint | None = None
+        self.state: VehicleState | None = None
+        self.camera_info: CameraInfo | None = None
+        self.t_last_gcs_s = time.monotonic()
+        self.gcs_seen = False
+        self.rates = {k: RateMeter() for k in ("setpoint", "state", "frame", "keypoints")}
+        self._act_lock = asyncio.Lock()
+        self._tasks: list[asyncio.Task] = []
+        self._subs: list[Any] = []
+        self._last_state_pub_s = 0.0
+        self._cpu = (time.monotonic(), time.process_time())
+        self.warnings: list[str] = []
+        self.acks: list[CommandAck] = []  # for tests and the health report
+        autopilot.on_state = self._on_state
+
+    # --- keys ----------------------------------------------------------------------------------------
+    def key(self, topic: str) -> str:
+        return keys.drone_key(self.cfg.fleet, self.id, topic)
+
+    # --- recording and publishing -------------------------------------------------------------------
+    def _record(self, key: str, data: bytes, log_time_ns: int | None = None) -> None:
+        """Record bytes as sent/received on the recorder channel of ``key`` (``state``, ``gcs/cmd`` ...)."""
+        if self.recorder is None:
+            return
+        try:
+            self.recorder.record(channel_name(key, self.id), data, log_time_ns)
+        except Exception as e:
+            if not getattr(self, "_record_failed", False):
+                log.error("%s: recording on %s failed: %s", self.id, key, e)
+                self._record_failed = True
+
+    def publish(self, topic: str, msg: Message, latch: bool = False) -> None:
+        key = self.key(topic)
+        try:
+            data = self.bus.publish(key, msg, latch=latch)
+        except Exception as e:  # a dead network must not stop the flight
+            log.warning("%s: publish on %s failed: %s", self.id, key, e)
+            data = encode(stamp_sent(msg))
+        self._record(key, data)
+
+    def ack(self, command_id: str, result: str, reason: str = "") -> None:
+        a = CommandAck(header=CommandAck.make_header(self.id), command_id=command_id, result=result, reason=reason)
+        self.acks.append(a)
+        (log.warning if result in ("refused", "failed") else log.info)(
+            "%s: %s %s%s", self.id, result, command_id, f": {reason}" if reason else "")
+        self.publish(keys.ACK, a)
+
+    # --- inputs (run on the loop) -------------------------------------------------------------------
+    def _on_state(self, st: VehicleState) -> None:
+        self.state = st
+        self.rates["state"].tick()
+        if self.recorder is not None:
+            self._record(self.key(keys.STATE), encode(stamp_sent(st)), st.header.t_measurement_ns)
+        t = time.monotonic()
+        if t - self._last_state_pub_s >= 1.0 / self.cfg.rates.state_publish_hz - 1e-3:
+            self._last_state_pub_s = t
+            try:
+                self.bus.publish(self.key(keys.STATE), st)
+            except Exception as e:
+                log.debug("state publish failed: %s", e)
+
+    def on_gcs_health(self, rx) -> None:
+        self.t_last_gcs_s = time.monotonic()
+        if not self.gcs_seen:
+            log.info("%s: ground-station heartbeat received", self.id)
+        self.gcs_seen = True
+
+    def on_command(self, rx) -> None:
+        self._record(rx.key, rx.data, rx.t_received_ns)
+        cmd: Command = rx.msg
+        if cmd.target not in ("*", self.id):
+            return  # another drone's command: its agent answers
+        reason = validate_command(cmd, self.id, rx.t_received_ns)
+        if reason is not None:
+            self.ack(cmd.command_id, "refused", reason)
+            return
+        tr = self.mission.command(cmd.action)
+        if tr.refused:
+            self.ack(cmd.command_id, "refused", tr.refused)
+            return
+        self.ack(cmd.command_id, "accepted")
+        self._spawn(self._execute(tr.action, cmd.command_id, cmd.params), f"cmd:{cmd.action}")
+
+    def on_plan(self, rx) -> None:
+        self._record(rx.key, rx.data, rx.t_received_ns)
+        plan: OrbitPlan = rx.msg
+        if self.mission.plan is not None and plan.plan_id == self.mission.plan.plan_id and \
+                plan.header.t_sent_ns == self.mission.plan.header.t_sent_ns:
+            return  # the same plan again (live + query)
+        reason = validate_plan(plan, self.id, self.cfg.safety, rx.t_received_ns)
+        if reason is not None:
+            self.ack(plan.plan_id, "refused", reason)
+            return
+        if plan.start_time_ns == 0:
+            plan = msgspec.structs.replace(plan, start_time_ns=rx.t_received_ns)
+        tr = self.mission.set_plan(plan)
+        self.ack(plan.plan_id, "accepted")
+        if tr.action == Action.START_ORBIT:
+            self._spawn(self._execute(Action.START_ORBIT, plan.plan_id, {}), "plan")
+
+    def on_camera(self, rx) -> None:
+        self._record(rx.key, rx.data, rx.t_received_ns)
+        msg = rx.msg
+        if isinstance(msg, CameraInfo):
+            self.camera_info = msg
+        elif isinstance(msg, CameraFrame):
+            self.rates["frame"].tick()
+            for stage in self.perception:
+                try:
+                    for topic, out in stage.process(msg, self.camera_info, self.state):
+                        self.publish(topic, out)
+                except Exception:
+                    log.exception("%s: perception stage %s failed", self.id, getattr(stage, "name", stage))
+        elif isinstance(msg, Keypoints2D):
+            self.rates["keypoints"].tick()
+
+    # --- actions ------------------------------------------------------------------------------------
+    def _spawn(self, coro, name: str) -> None:
+        t = asyncio.get_running_loop().create_task(coro, name=name)
+        self._tasks.append(t)
+        t.add_done_callback(lambda tt: self._tasks.remove(tt) if tt in self._tasks else None)
+
+    async def _execute(self, action: Action, command_id: str, params: dict[str, float]) -> None:
+        ap = self.autopilot
+        async with self._act_lock:
+            try:
+                if action == Action.ARM:
+                    await ap.wait_healthy(self.cfg.flight.health_timeout_s)
+                    await ap.arm()
+                elif action == Action.TAKEOFF:
+                    await ap.wait_healthy(self.cfg.flight.health_timeout_s)
+                    if not ap.telemetry["armed"]:
+                        await ap.arm()
+                    self._takeoff_alt_m = float(params.get("altitude_m", self.cfg.flight.takeoff_altitude_m))
+                    await ap.takeoff(self._takeoff_alt_m)
+                elif action == Action.START_ORBIT:
+                    await self._start_orbit()
+                elif action == Action.PAUSE:
+                    st = self.state
+                    if st is not None:
+                        self.source = HoldSource(st.position_ned_m, yaw_from_q(st.q_world_body))
+                elif action in (Action.LAND, Action.RETURN, Action.HOLD):
+                    self.source = None
+                    await {Action.LAND: ap.land, Action.RETURN: ap.return_to_launch, Action.HOLD: ap.hold}[action]()
+                elif action == Action.DISARM:
+                    await ap.disarm()
+            except Exception as e:
+                log.error("%s: %s failed: %s", self.id, action.value, e)
+                self.ack(command_id, "failed", str(e))
+                if action in (Action.ARM, Action.TAKEOFF):
+                    self.mission.state = State.IDLE if not ap.telemetry["armed"] else State.ARMED
+                return
+            self.ack(command_id, "completed")
+
+    async def _start_orbit(self) -> None:
+        plan = self.mission.plan
+        st = self.state
+        if plan is None or st is None:
+            raise RuntimeError("no plan or no vehicle state yet")
+        self.source = OrbitController(plan, self.id, self.cfg.flight.approach_speed_m_s,
+                                      self.cfg.flight.approach_climb_m_s)
+        if not self.autopilot.offboard_active:
+            # PX4 refuses offboard without a setpoint stream: let the control loop stream first.
+            await asyncio.sleep(max(0.3, 3.0 / self.cfg.rates.setpoint_hz))
+            await self.autopilot.start_offboard()
+
+    # --- loops ----------------------------------------------------------------------------------------
+    async def control_loop(self) -> None:
+        period = 1.0 / self.cfg.rates.setpoint_hz
+        t_next = time.monotonic()
+        while True:
+            t_next += period
+            src, st = self.source, self.state
+            if src is not None and st is not None:
+                try:
+                    sp = src.update(time.time(), np.asarray(st.position_ned_m), np.asarray(st.velocity_ned_m_s),
+                                    yaw_from_q(st.q_world_body))
+                    await self.autopilot.set_setpoint(sp)
+                    self.last_setpoint = sp
+                    self.rates["setpoint"].tick()
+                except Exception as e:
+                    log.warning("%s: setpoint failed: %s", self.id, e)
+            delay = t_next - time.monotonic()
+            if delay < -period:
+                t_next = time.monotonic()  # fell behind: do not burst
+            await asyncio.sleep(max(0.0, delay))
+
+    async def supervisor_loop(self) -> None:
+        period = 0.1
+        t_health = 0.0
+        while True:
+            await asyncio.sleep(period)
+            self.supervise_once()
+            now = time.monotonic()
+            if now - t_health >= 1.0 / self.cfg.rates.health_hz:
+                t_health = now
+                self.publish(keys.HEALTH, self.health())
+
+    def supervise_once(self) -> None:
+        T = self.autopilot.telemetry
+        pos = T.get("pos")
+        alt = -pos[2] if pos is not None else 0.0
+        target_alt = getattr(self, "_takeoff_alt_m", self.cfg.flight.takeoff_altitude_m)
+        before = self.mission.state
+        self.mission.vehicle(T["armed"], T["in_air"], alt >= 0.9 * target_alt)
+        if self.mission.state != before:
+            log.info("%s: %s -> %s", self.id, before.value, self.mission.state.value)
+            if self.mission.state == State.LANDED:
+                self.source = None
+        fs = self.cfg.safety
+        if self.mission.airborne:
+            silent = time.monotonic() - self.t_last_gcs_s
+            if silent > fs.gcs_heartbeat_timeout_s:
+                self._failsafe(f"ground-station heartbeat lost for {silent:.1f} s", fs.gcs_loss_action)
+            if T["battery_frac"] < fs.low_battery_frac:
+                self._failsafe(f"low battery {100 * T['battery_frac']:.0f}%", fs.low_battery_action)
+
+    def _failsafe(self, reason: str, action: str) -> None:
+        tr = self.mission.trigger_failsafe(reason, action)
+        if tr.action != Action.NONE:
+            log.warning("%s: failsafe: %s -> %s", self.id, reason, action)
+            self.warnings.append(reason)
+            self._spawn(self._execute(tr.action, f"failsafe:{action}", {}), "failsafe")
+
+    def health(self) -> Health:
+        t, c = time.monotonic(), time.process_time()
+        cpu = 100.0 * (c - self._cpu[1]) / max(t - self._cpu[0], 1e-6)
+        self._cpu = (t, c)
+        return Health(
+            header=Health.make_header(self.id), role="agent", state=self.mission.state.value,
+            ok=not self.warnings and self.autopilot.telemetry["health_ok"], warnings=self.warnings[-5:],
+            cpu_percent=cpu, rates_hz={k: m.rate_hz() for k, m in self.rates.items()},
+        )
+
+    # --- life -----------------------------------------------------------------------------------------
+    async def start(self) -> None:
+        """Connect to the autopilot and the network; start the loops."""
+        cfg = self.cfg
+        loop = asyncio.get_running_loop()
+        from onboard.transport import deliver_to_loop
+
+        sub = lambda key, cb, t: self._subs.append(self.bus.subscribe(key, deliver_to_loop(loop, cb), t))
+        sub(keys.gcs_key(cfg.fleet, keys.HEALTH), self.on_gcs_health, Health)
+        sub(keys.gcs_key(cfg.fleet, keys.CMD), self.on_command, Command)
+        sub(keys.gcs_key(cfg.fleet, keys.PLAN), self.on_plan, OrbitPlan)
+        if cfg.record_camera:
+            for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D):
+                sub(self.key(topic), self.on_camera, None)
+        try:
+            self.bus.declare_alive(keys.alive_key(cfg.fleet, self.id))
+        except Exception as e:
+            log.warning("%s: no liveliness token: %s", self.id, e)
+        await self.autopilot.connect(cfg.connection, cfg.connect_timeout_s, cfg.mavlink_component)
+        await self.autopilot.start_telemetry(cfg.rates.telemetry_hz)
+        self._tasks.append(asyncio.create_task(self.control_loop(), name="control"))
+        self._tasks.append(asyncio.create_task(self.supervisor_loop(), name="supervisor"))
+        # a plan published before we started: ask for the latest one
+        try:
+            for rx in await asyncio.to_thread(self.bus.query_latest, keys.gcs_key(cfg.fleet, keys.PLAN), OrbitPlan, 0.5):
+                self.on_plan(rx)
+        except Exception as e:
+            log.debug("%s: plan query failed: %s", self.id, e)
+        log.info("%s: agent running (%s)", self.id, cfg.connection)
+
+    async def shutdown(self) -> None:
+        """SIGTERM: land (or hold) if airborne, as configured, then stop everything."""
+        fs = self.cfg.safety
+        if self.mission.airborne and self.mission.state not in (State.LANDING, State.RETURNING):
+            log.warning("%s: shutdown while airborne: %s", self.id, fs.sigterm_action)
+            tr = self.mission.trigger_failsafe("shutdown requested", fs.sigterm_action)
+            if tr.action != Action.NONE:
+                await self._execute(tr.action, "shutdown", {})
+        if fs.sigterm_action == "land" and self.mission.airborne:
+            t_end = time.monotonic() + fs.sigterm_land_timeout_s
+            while self.mission.airborne and time.monotonic() < t_end:
+                self.supervise_once()
+                await asyncio.sleep(0.1)
+            if self.mission.airborne:
+                log.error("%s: still airborne after %.0f s of landing; exiting anyway", self.id, fs.sigterm_land_timeout_s)
+        try:
+            self.publish(keys.HEALTH, self.health())
+        except Exception:
+            pass
+        for t in list(self._tasks):
+            t.cancel()
+        for t in list(self._tasks):
+            try:
+                await t
+            except BaseException:
+                pass
+        for s in self._subs:
+            try:
+                s.close()
+            except Exception:
+                pass
+        await self.autopilot.close()
+
+    async def run(self, stop: asyncio.Event) -> None:
+        await self.start()
+        await stop.wait()
+        await self.shutdown()
+
+
+async def run_agent(cfg: AgentConfig) -> int:
+    """Process entry: open the transport and the recorder, run the agent until SIGTERM/SIGINT."""
+    from onboard.autopilot import MavsdkAutopilot
+    from onboard.transport import Transport
+
+    cfg.validate()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    recorder = None
+    if cfg.record.enabled:
+        from onboard.recorder import Recorder, drone_log_path
+
+        recorder = Recorder(drone_log_path(cfg.record.dir, cfg.drone_id), node_id=cfg.drone_id,
+                            metadata={"fleet": cfg.fleet, "connection": cfg.connection})
+    bus = Transport.open(cfg.transport, node_id=cfg.drone_id)
+    origin = (cfg.origin.lat_deg, cfg.origin.lon_deg, cfg.origin.alt_m)
+    agent = Agent(cfg, bus, MavsdkAutopilot(cfg.drone_id, origin=origin), recorder)
+    try:
+        await agent.run(stop)
+    finally:
+        if recorder is not None:
+            recorder.close()
+        bus.close()
+    log.info("%s: agent stopped (pid %d)", cfg.drone_id, os.getpid())
+    return 0

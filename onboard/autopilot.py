@@ -1,0 +1,275 @@
+"""Thin MAVSDK 4 adapter: the agent's only door to the autopilot (PX4 or the built-in simulator).
+
+It connects as a MAVLink companion computer, asks for telemetry at the recording rate, keeps the latest
+telemetry of every stream and calls ``on_state(VehicleState)`` for each position/velocity sample
+(the autopilot's own estimate, what the recorder keeps), and turns the agent's intents into MAVSDK calls
+(arm, takeoff, offboard setpoints, land, return, hold). No flight logic lives here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from typing import Callable
+
+import numpy as np
+
+from shared_msgs import VehicleState, now_ns
+from skycap.errors import SkycapError
+from skycap.frames import geodetic_to_ned
+
+from onboard.orbit import Setpoint
+
+log = logging.getLogger(__name__)
+
+__all__ = ["AutopilotError", "MavsdkAutopilot"]
+
+
+class AutopilotError(SkycapError):
+    """The autopilot could not be reached or refused an action."""
+
+
+_LANDED = {0: "unknown", 1: "on_ground", 2: "in_air", 3: "taking_off", 4: "landing"}
+
+
+class MavsdkAutopilot:
+    """One autopilot over MAVSDK (asyncio API of the ``mavsdk`` 4.x package).
+
+    ``on_state`` is called on the event loop with a :class:`VehicleState` for every
+    ``position_velocity_ned`` sample (``telemetry_hz``), combined with the latest attitude, battery,
+    GPS, mode, armed and landed state.
+    """
+
+    def __init__(self, drone_id: str, on_state: Callable[[VehicleState], None] | None = None,
+                 origin: tuple[float, float, float] = (47.397742, 8.545594, 488.0), offset_samples: int = 25):
+        self.drone_id = drone_id
+        #: geodetic origin (lat_deg, lon_deg, alt_m) of the world NED frame
+        self.origin = tuple(float(x) for x in origin)
+        #: world = local + offset (NED metres); estimated from global vs local position on the ground
+        self.local_to_world_ned_m: np.ndarray | None = None
+        self._offset_acc: list[np.ndarray] = []
+        self._offset_samples = int(offset_samples)
+        self.on_state = on_state
+        self._mavsdk = None
+        self._system = None
+        self._tasks: list[asyncio.Task] = []
+        self.telemetry: dict = {
+            "q": (1.0, 0.0, 0.0, 0.0),
+            "armed": False,
+            "in_air": False,
+            "landed_state": "unknown",
+            "flight_mode": "unknown",
+            "battery_frac": 1.0,
+            "battery_v": 0.0,
+            "lat": math.nan, "lon": math.nan, "alt_amsl": math.nan,
+            "fix": 0, "sats": 0,
+            "health_ok": False,
+            "pos": None, "vel": (0.0, 0.0, 0.0),
+        }
+        self.last_state: VehicleState | None = None
+        self._seq = 0
+        self.offboard_active = False
+
+    # --- connection ----------------------------------------------------------------------------------
+    async def connect(self, url: str, timeout_s: float = 30.0, component: str = "companion_computer") -> None:
+        from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+        from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.offboard import OffboardAsync
+        from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+        ctype = ComponentType.COMPANION_COMPUTER
+        self._mavsdk = Mavsdk(Configuration.create_with_component_type(ctype))
+        try:
+            await self._mavsdk.add_any_connection(url)
+        except Exception as e:
+            raise AutopilotError(f"cannot open MAVLink connection {url!r}: {e}; check the URL and that the port is free") from e
+        log.info("%s: waiting for an autopilot on %s (up to %.0f s)", self.drone_id, url, timeout_s)
+        system = await self._mavsdk.first_autopilot(timeout_s=timeout_s)
+        if system is None:
+            raise AutopilotError(
+                f"no autopilot heartbeat on {url} within {timeout_s:.0f} s; is the simulator/PX4 running and "
+                f"sending to this port?")
+        self._system = system
+        self.sysid = await system.get_system_id()
+        self.action = ActionAsync(system)
+        self.offboard = OffboardAsync(system)
+        self.tel = TelemetryAsync(system)
+        log.info("%s: connected to autopilot sysid %d", self.drone_id, self.sysid)
+
+    async def start_telemetry(self, rate_hz: float = 50.0) -> None:
+        """Ask for ``rate_hz`` position/velocity and attitude, and start the subscriptions."""
+        tel = self.tel
+        for name in ("set_rate_position_velocity_ned", "set_rate_attitude_quaternion", "set_rate_position"):
+            try:
+                await getattr(tel, name)(rate_hz)
+            except Exception as e:  # PX4 may refuse a rate; keep its default and say so
+                log.warning("%s: %s(%s) failed: %s", self.drone_id, name, rate_hz, e)
+        for name in ("set_rate_battery", "set_rate_in_air", "set_rate_landed_state"):
+            try:
+                await getattr(tel, name)(2.0 if name == "set_rate_battery" else 5.0)
+            except Exception as e:
+                log.debug("%s: %s failed: %s", self.drone_id, name, e)
+        T = self.telemetry
+
+        def q(v):
+            T["q"] = (v.w, v.x, v.y, v.z)
+
+        def armed(v):
+            T["armed"] = bool(v)
+
+        def in_air(v):
+            T["in_air"] = bool(v)
+
+        def landed(v):
+            T["landed_state"] = _LANDED.get(int(v), "unknown")
+
+        def mode(v):
+            T["flight_mode"] = v.name
+
+        def battery(v):
+            if math.isfinite(v.remaining_percent):
+                T["battery_frac"] = max(0.0, min(1.0, v.remaining_percent / 100.0))
+            if math.isfinite(v.voltage_v):
+                T["battery_v"] = v.voltage_v
+
+        def position(v):
+            T["lat"], T["lon"], T["alt_amsl"] = v.latitude_deg, v.longitude_deg, v.absolute_altitude_m
+
+        def gps(v):
+            T["fix"], T["sats"] = int(v.fix_type), int(v.num_satellites)
+
+        def health(v):
+            T["health_ok"] = bool(v.is_global_position_ok and v.is_home_position_ok and v.is_armable)
+
+        subs = [
+            (tel.subscribe_attitude_quaternion, q), (tel.subscribe_armed, armed), (tel.subscribe_in_air, in_air),
+            (tel.subscribe_landed_state, landed), (tel.subscribe_flight_mode, mode), (tel.subscribe_battery, battery),
+            (tel.subscribe_position, position), (tel.subscribe_gps_info, gps), (tel.subscribe_health, health),
+            (tel.subscribe_position_velocity_ned, self._on_posvel),
+        ]
+        for sub, cb in subs:
+            self._tasks.append(asyncio.create_task(self._pump(sub, cb), name=f"tel:{sub.__name__}"))
+
+    async def _pump(self, subscribe, cb) -> None:
+        try:
+            async for v in subscribe():
+                try:
+                    cb(v)
+                except Exception:
+                    log.exception("%s: telemetry callback %s failed", self.drone_id, subscribe.__name__)
+        except asyncio.CancelledError:
+            pass
+
+    def _on_posvel(self, v) -> None:
+        p, vel = v.position, v.velocity
+        if not (math.isfinite(p.north_m) and math.isfinite(p.east_m) and math.isfinite(p.down_m)):
+            return
+        T = self.telemetry
+        local = np.array([p.north_m, p.east_m, p.down_m])
+        if self.local_to_world_ned_m is None:
+            # The autopilot's local frame is about its EKF origin: find where that is in the world frame
+            # from the global position (same estimate), averaged over a few samples.
+            if T["fix"] < 3 or not math.isfinite(T["lat"]) or T["lat"] == 0.0:
+                return
+            world = geodetic_to_ned(T["lat"], T["lon"], T["alt_amsl"], *self.origin)
+            self._offset_acc.append(world - local)
+            if len(self._offset_acc) < self._offset_samples:
+                return
+            self.local_to_world_ned_m = np.mean(self._offset_acc, axis=0)
+            log.info("%s: autopilot local origin at world NED %s m", self.drone_id,
+                     np.round(self.local_to_world_ned_m, 2).tolist())
+        w = local + self.local_to_world_ned_m
+        T["pos"] = (float(w[0]), float(w[1]), float(w[2]))
+        T["vel"] = (vel.north_m_s, vel.east_m_s, vel.down_m_s)
+        self._seq += 1
+        q = T["q"] if all(math.isfinite(x) for x in T["q"]) else (1.0, 0.0, 0.0, 0.0)
+        st = VehicleState(
+            header=VehicleState.make_header(self.drone_id, now_ns(), self._seq),
+            position_ned_m=T["pos"], velocity_ned_m_s=T["vel"], q_world_body=q,
+            latitude_deg=_finite(T["lat"]), longitude_deg=_finite(T["lon"]), altitude_amsl_m=_finite(T["alt_amsl"]),
+            gps_fix_type=T["fix"], gps_num_satellites=T["sats"],
+            battery_remaining_frac=T["battery_frac"], battery_voltage_v=T["battery_v"],
+            flight_mode=T["flight_mode"], armed=T["armed"], landed_state=T["landed_state"], health_ok=T["health_ok"],
+        )
+        self.last_state = st
+        if self.on_state is not None:
+            self.on_state(st)
+
+    async def wait_healthy(self, timeout_s: float) -> None:
+        t_end = time.monotonic() + timeout_s
+        while not (self.telemetry["health_ok"] and self.telemetry["pos"] is not None):
+            if time.monotonic() > t_end:
+                raise AutopilotError(
+                    f"{self.drone_id}: autopilot not healthy after {timeout_s:.0f} s (needs GPS fix, home "
+                    f"position, armable); check the vehicle's preflight checks")
+            await asyncio.sleep(0.1)
+
+    # --- actions -------------------------------------------------------------------------------------
+    async def arm(self) -> None:
+        await self._do("arm", self.action.arm())
+
+    async def disarm(self) -> None:
+        await self._do("disarm", self.action.disarm())
+
+    async def takeoff(self, altitude_m: float) -> None:
+        await self._do("set_takeoff_altitude", self.action.set_takeoff_altitude(float(altitude_m)))
+        await self._do("takeoff", self.action.takeoff())
+
+    async def land(self) -> None:
+        await self._leave_offboard()
+        await self._do("land", self.action.land())
+
+    async def return_to_launch(self) -> None:
+        await self._leave_offboard()
+        await self._do("return_to_launch", self.action.return_to_launch())
+
+    async def hold(self) -> None:
+        await self._leave_offboard()
+        await self._do("hold", self.action.hold())
+
+    async def set_setpoint(self, sp: Setpoint) -> None:
+        """Stream one position + velocity feed-forward + yaw setpoint (NED)."""
+        from mavsdk.asyncio.plugins.offboard import PositionNedYaw, VelocityNedYaw
+
+        if self.local_to_world_ned_m is None:
+            raise AutopilotError(f"{self.drone_id}: no position fix yet, cannot place a world setpoint")
+        yaw_deg = math.degrees(sp.yaw_rad)
+        p = np.asarray(sp.position_ned_m) - self.local_to_world_ned_m  # world -> autopilot local
+        v = sp.velocity_ned_m_s
+        await self.offboard.set_position_velocity_ned(
+            PositionNedYaw(float(p[0]), float(p[1]), float(p[2]), yaw_deg),
+            VelocityNedYaw(float(v[0]), float(v[1]), float(v[2]), yaw_deg),
+        )
+
+    async def start_offboard(self) -> None:
+        """Switch to offboard; a setpoint must have been streamed first (PX4 requirement)."""
+        await self._do("offboard start", self.offboard.start())
+        self.offboard_active = True
+
+    async def _leave_offboard(self) -> None:
+        self.offboard_active = False
+
+    async def _do(self, what: str, coro) -> None:
+        try:
+            await coro
+        except Exception as e:
+            raise AutopilotError(f"{self.drone_id}: autopilot refused {what}: {e}") from e
+
+    async def close(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            try:
+                await t
+            except BaseException:
+                pass
+        self._tasks.clear()
+        if self._mavsdk is not None:
+            self._mavsdk.destroy()
+            self._mavsdk = None
+
+
+def _finite(x: float) -> float:
+    return float(x) if math.isfinite(x) else 0.0

@@ -1,0 +1,44 @@
+"""``skycap agent``: run one drone's onboard agent (one process per drone, as on its companion computer)."""
+
+from __future__ import annotations
+
+import argparse
+
+from skycap.config import add_config_args
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "agent",
+        help="run a drone's onboard agent (autopilot over MAVSDK, fleet over Zenoh, MCAP recording)",
+        description="Run one drone's onboard agent until SIGTERM/SIGINT (then it lands if airborne, as "
+        "configured by safety.sigterm_action, and closes its recording). Example: skycap agent --drone-id "
+        "drone_2 --connection udpin://0.0.0.0:14541 --record-dir flights/f1",
+    )
+    add_config_args(p)
+    p.add_argument("--drone-id", default=None, help="this drone's id (drone_1, drone_2 ...)")
+    p.add_argument("--fleet", default=None, help="fleet id (the Zenoh key segment shared with the ground station)")
+    p.add_argument("--connection", default=None, help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540")
+    p.add_argument("--record-dir", default=None, help="flight folder; the agent writes <dir>/<drone_id>.mcap")
+    p.add_argument("--no-record", action="store_true", help="do not record an MCAP file")
+    p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join, e.g. tcp/127.0.0.1:7447")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from onboard.agent import run_agent
+    from onboard.config import AgentConfig
+    from skycap.config import config_from_args
+
+    extra = {
+        "drone_id": args.drone_id,
+        "fleet": args.fleet,
+        "connection": args.connection,
+        "record.dir": args.record_dir,
+        "record.enabled": False if args.no_record else None,
+        "transport.connect": [args.zenoh_connect] if args.zenoh_connect else None,
+    }
+    cfg = config_from_args(AgentConfig, args, extra).validate()
+    return asyncio.run(run_agent(cfg))
