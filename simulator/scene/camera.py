@@ -1,0 +1,171 @@
+"""The simulated camera: pinhole intrinsics, the mount (pitch gimbal or fixed), exact projections.
+
+Pixel convention (as :mod:`shared_msgs.messages`): origin at the top-left pixel's *corner*, so pixel
+(col, row) covers [col, col+1) x [row, row+1) and its centre is (col + 0.5, row + 0.5); the principal
+point of a centred camera is (width/2, height/2).
+
+    cam = PinholeCamera.from_config(CameraConfig())
+    T_world_cam = camera_pose(cfg, position_ned_m, q_world_body_wxyz, gimbal_pitch_rad)
+    gt = project_person(cam, T_world_cam, joints_ned_m)        # GtProjection: uv (17, 2), visibility, box
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from simulator.scene.body import Ellipsoids, body_ellipsoids
+from simulator.scene.config import CameraConfig
+from skycap.frames import R_body_cam, invert_T, make_T
+
+__all__ = ["PinholeCamera", "camera_pose", "R_world_body_from_q", "GtProjection", "project_person", "ellipsoid_boxes"]
+
+
+@dataclasses.dataclass(frozen=True)
+class PinholeCamera:
+    """Undistorted pinhole camera (OpenCV optical frame)."""
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+
+    @classmethod
+    def from_fov(cls, width_px: int, height_px: int, hfov_deg: float) -> "PinholeCamera":
+        """Square pixels, centred principal point, fx = (width/2) / tan(hfov/2)."""
+        f = 0.5 * width_px / math.tan(math.radians(hfov_deg) / 2)
+        return cls(int(width_px), int(height_px), f, f, 0.5 * width_px, 0.5 * height_px)
+
+    @classmethod
+    def from_config(cls, cfg: CameraConfig) -> "PinholeCamera":
+        return cls.from_fov(cfg.width_px, cfg.height_px, cfg.hfov_deg)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @property
+    def vfov_deg(self) -> float:
+        return math.degrees(2 * math.atan(0.5 * self.height_px / self.fy_px))
+
+    def project_cam(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-frame points (..., 3) -> (pixels (..., 2), depth z (...)); depth <= 0 is behind."""
+        z = p_cam[..., 2]
+        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        u = self.fx_px * p_cam[..., 0] / zs + self.cx_px
+        v = self.fy_px * p_cam[..., 1] / zs + self.cy_px
+        return np.stack([u, v], axis=-1), z
+
+    def project(self, T_world_cam: np.ndarray, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (..., 3) -> (pixels (..., 2), depth (...))."""
+        T_cw = invert_T(np.asarray(T_world_cam, dtype=float))
+        p_cam = np.asarray(p_world, dtype=float) @ T_cw[:3, :3].T + T_cw[:3, 3]
+        return self.project_cam(p_cam)
+
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        return (uv[..., 0] >= 0) & (uv[..., 0] < self.width_px) & (uv[..., 1] >= 0) & (uv[..., 1] < self.height_px)
+
+
+def R_world_body_from_q(q_wxyz) -> np.ndarray:
+    """Body FRD -> NED rotation from a (w, x, y, z) quaternion (the messages' order)."""
+    w, x, y, z = (float(v) for v in q_wxyz)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
+
+
+def camera_pose(
+    cfg: CameraConfig,
+    position_ned_m,
+    q_world_body_wxyz,
+    gimbal_pitch_rad: float | None = None,
+) -> np.ndarray:
+    """T_world_cam (4, 4) of the camera on a vehicle at ``position_ned_m`` with attitude ``q_world_body``.
+
+    Gimbal mount: roll and pitch stabilised, camera yaw = vehicle yaw, camera pitch = ``gimbal_pitch_rad``
+    (from the vehicle truth) or ``cfg.pitch_deg`` when None. Fixed mount: the camera turns with the body,
+    pitched by ``cfg.pitch_deg`` relative to it. The lever arm turns with the body in both cases.
+    """
+    R_wb = R_world_body_from_q(q_world_body_wxyz)
+    t = np.asarray(position_ned_m, dtype=float) + R_wb @ np.asarray(cfg.lever_arm_body_m, dtype=float)
+    if cfg.mount == "gimbal":
+        yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])
+        c, s = math.cos(yaw), math.sin(yaw)
+        R_yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        pitch = math.radians(cfg.pitch_deg) if gimbal_pitch_rad is None else float(gimbal_pitch_rad)
+        R_wc = R_yaw @ R_body_cam(pitch)
+    else:
+        R_wc = R_wb @ R_body_cam(math.radians(cfg.pitch_deg))
+    return make_T(R_wc, t)
+
+
+def ellipsoid_boxes(cam: PinholeCamera, ell_cam: Ellipsoids, near_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Exact image bounding boxes (E, 4) (x_min, y_min, x_max, y_max) of ellipsoids given in the camera
+    frame, and a flag (E,) true where the ellipsoid lies wholly in front of ``near_m`` (else its box is
+    meaningless). Uses the dual quadric: the outline's dual conic is ``K (B - c c^T) K^T``."""
+    c = ell_cam.centers
+    B = ell_cam.B
+    front = c[:, 2] - np.sqrt(np.maximum(B[:, 2, 2], 0.0)) > near_m
+    Q = B - c[:, :, None] * c[:, None, :]
+    K = cam.K
+    C = K @ Q @ K.T  # (E, 3, 3)
+    out = np.zeros((len(c), 4))
+    for ax in (0, 1):
+        a, bb, cc = C[:, 2, 2], C[:, ax, 2], C[:, ax, ax]
+        # tangent line x = s: cc - 2 s bb + s^2 a = 0
+        disc = np.sqrt(np.maximum(bb * bb - a * cc, 0.0))
+        a_s = np.where(np.abs(a) < 1e-12, 1e-12, a)
+        s1, s2 = (bb - disc) / a_s, (bb + disc) / a_s
+        out[:, ax] = np.minimum(s1, s2)
+        out[:, ax + 2] = np.maximum(s1, s2)
+    return out, front
+
+
+@dataclasses.dataclass
+class GtProjection:
+    """Exact projections of the person into one camera.
+
+    uv_px: (17, 2) joint pixels; depth_m: (17,) camera z; in_front: (17,) depth > 0.05 m;
+    in_image: (17,) pixel inside the image; visible: (17,) both (self-occlusion is not modelled);
+    box_px: (4,) body box (x_min, y_min, x_max, y_max) from the projected body ellipsoids, clipped to
+    the image, or None when no part of the body is in front of the camera and in the image;
+    box_unclipped_px: the same before clipping; truncated: the box was clipped.
+    """
+
+    uv_px: np.ndarray
+    depth_m: np.ndarray
+    in_front: np.ndarray
+    in_image: np.ndarray
+    visible: np.ndarray
+    box_px: np.ndarray | None
+    box_unclipped_px: np.ndarray | None
+    truncated: bool
+
+
+def project_person(
+    cam: PinholeCamera, T_world_cam: np.ndarray, joints_ned_m: np.ndarray, ellipsoids: Ellipsoids | None = None
+) -> GtProjection:
+    """Ground-truth projections of COCO-17 joints (17, 3) and the body box (from its ellipsoids)."""
+    T_cw = invert_T(np.asarray(T_world_cam, dtype=float))
+    R_cw, t_cw = T_cw[:3, :3], T_cw[:3, 3]
+    p_cam = np.asarray(joints_ned_m, dtype=float) @ R_cw.T + t_cw
+    uv, z = cam.project_cam(p_cam)
+    in_front = z > 0.05
+    in_img = cam.in_image(uv) & in_front
+    ell = (ellipsoids if ellipsoids is not None else body_ellipsoids(joints_ned_m)).transformed(R_cw, t_cw)
+    boxes, front = ellipsoid_boxes(cam, ell)
+    box = box_c = None
+    truncated = False
+    if front.any():
+        b = boxes[front]
+        box_c = np.array([b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()])
+        clipped = np.array(
+            [max(box_c[0], 0.0), max(box_c[1], 0.0), min(box_c[2], cam.width_px), min(box_c[3], cam.height_px)]
+        )
+        if clipped[2] > clipped[0] and clipped[3] > clipped[1]:
+            box = clipped
+            truncated = bool(np.any(np.abs(clipped - box_c) > 1e-9))
+    return GtProjection(uv, z, in_front, in_img, in_img.copy(), box, box_c, truncated)

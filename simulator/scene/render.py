@@ -1,0 +1,331 @@
+"""A fast software renderer of the simulated scene: a textured ground plane with sky, the person as
+Lambert-shaded ellipsoids with exact occlusion, and the person's sun shadow. OpenCV + numpy, vectorised.
+
+    r = Renderer(PinholeCamera.from_config(cfg), cfg, person_cfg)
+    frame = r.render(T_world_cam, joints_ned_m)         # RenderedFrame: image (H, W, 3) BGR uint8, gt
+    jpeg = encode_jpeg(frame.image, quality=85)
+
+How (per frame):
+
+* **Ground and sky.** The ray of every pixel centre is intersected with the plane down = 0; the ground
+  point (north, east) samples a tileable procedural grass texture with 2 m mown checker squares
+  (``cv2.remap`` with wrap-around), fading to the texture's mean colour where a pixel covers many
+  texels (a one-level mip map against aliasing) and to the horizon haze with distance. The ray
+  geometry is computed on a half-resolution grid and resized (it is smooth); the texture is sampled at
+  full resolution. Rays above the horizon get a sky gradient.
+* **Person.** 16 ellipsoids (:mod:`simulator.scene.body`) are ray-cast analytically in the person's
+  exact image box only (dual-quadric outline), at 2x2 supersampling while the box is small (anti-
+  aliased edges), with a per-pixel depth test between parts, true surface normals and Lambert shading
+  from the sun plus sky light.
+* **Shadow.** Ground pixels around the person's sun-shadow footprint cast a ray to the sun; a hit on
+  any ellipsoid darkens them (softened by a small blur).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import cv2
+import numpy as np
+
+from simulator.scene.body import MATERIALS, Ellipsoids, body_ellipsoids
+from simulator.scene.camera import GtProjection, PinholeCamera, ellipsoid_boxes, project_person
+from simulator.scene.config import CameraConfig, PersonConfig
+from skycap.frames import invert_T
+
+__all__ = ["Renderer", "RenderedFrame", "encode_jpeg", "grass_texture"]
+
+SKY_ZENITH_BGR = np.array([200.0, 140.0, 70.0], dtype=np.float32)
+SKY_HORIZON_BGR = np.array([235.0, 215.0, 190.0], dtype=np.float32)
+
+
+def grass_texture(size_px: int = 256, tile_m: float = 8.0, seed: int = 7) -> np.ndarray:
+    """Tileable grass-like texture (size, size, 3) uint8 BGR covering ``tile_m`` metres, with 2 m checker
+    squares of slightly different brightness (mown-lawn look, a perspective cue)."""
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(size_px)[:, None] ** 2 + np.fft.fftfreq(size_px)[None, :] ** 2
+    layers = []
+    for cutoff in (0.02, 0.08, 0.25):  # band-limited noise octaves; periodic by construction
+        spec = np.fft.fft2(rng.standard_normal((size_px, size_px))) * np.exp(-f / (2 * cutoff**2))
+        n = np.real(np.fft.ifft2(spec))
+        layers.append((n - n.mean()) / (n.std() + 1e-9))
+    noise = 0.5 * layers[0] + 0.35 * layers[1] + 0.25 * layers[2]
+    ij = (np.arange(size_px) * tile_m / size_px // 2.0).astype(int)
+    checker = ((ij[:, None] + ij[None, :]) % 2) * 2.0 - 1.0
+    base = np.array([50.0, 125.0, 85.0])  # BGR grass green
+    tint = np.array([8.0, 22.0, 14.0])
+    img = base[None, None] * (1.0 + 0.07 * checker[..., None]) + noise[..., None] * tint[None, None]
+    dry = np.clip(layers[0], 0, None)[..., None] * np.array([0.0, 10.0, 25.0])  # patches of drier grass
+    return np.clip(img + dry, 0, 255).astype(np.uint8)
+
+
+def encode_jpeg(image_bgr: np.ndarray, quality: int = 85) -> bytes:
+    ok, buf = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+@dataclasses.dataclass
+class RenderedFrame:
+    """image: (H, W, 3) BGR uint8; gt: exact projections (None without a person); timings_ms per stage."""
+
+    image: np.ndarray
+    gt: GtProjection | None
+    person_roi_px: tuple[int, int, int, int] | None  # x0, y0, x1, y1 of the ray-cast region
+    timings_ms: dict[str, float]
+
+
+class Renderer:
+    """Renders one camera's view. Not thread-safe (reuses buffers); make one per camera."""
+
+    TILE_M = 8.0
+    TEX_PX = 256
+    FOG_M = 120.0
+
+    def __init__(
+        self,
+        cam: PinholeCamera,
+        cam_cfg: CameraConfig | None = None,
+        person_cfg: PersonConfig | None = None,
+        supersample: int = 2,
+        max_person_samples: int = 60_000,
+        shadows: bool = True,
+    ):
+        self.cam = cam
+        cam_cfg = cam_cfg or CameraConfig()
+        person_cfg = person_cfg or PersonConfig()
+        az, el = math.radians(cam_cfg.sun_azimuth_deg), math.radians(cam_cfg.sun_elevation_deg)
+        self.sun_world = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), -math.sin(el)])
+        self.supersample = int(supersample)
+        self.shadows = bool(shadows)
+        self.max_person_samples = int(max_person_samples)
+        colors = {
+            "skin": person_cfg.skin_bgr,
+            "shirt": person_cfg.shirt_bgr,
+            "trousers": person_cfg.trousers_bgr,
+            "shoes": person_cfg.shoes_bgr,
+        }
+        self.material_bgr = np.array([colors[m] for m in MATERIALS], dtype=np.float32)
+        self.texture = grass_texture(self.TEX_PX, self.TILE_M)
+        self.tex_mean = self.texture.reshape(-1, 3).mean(0).astype(np.float32)
+        self.texel_m = self.TILE_M / self.TEX_PX
+        # half-resolution ray grid (pixel centres), camera frame, z = 1
+        W, H = cam.width_px, cam.height_px
+        self._hw = (max(W // 2, 2), max(H // 2, 2))
+        hw, hh = self._hw
+        xs = (np.arange(hw, dtype=np.float32) + 0.5) * (W / hw)
+        ys = (np.arange(hh, dtype=np.float32) + 0.5) * (H / hh)
+        X, Y = np.meshgrid((xs - cam.cx_px) / cam.fx_px, (ys - cam.cy_px) / cam.fy_px)
+        self._rays_half = np.stack([X, Y, np.ones_like(X)], axis=-1).reshape(-1, 3).astype(np.float32)
+        self._ground_mask = None
+
+    # ------------------------------------------------------------------ ground and sky
+    MAX_DIST_M = 400.0  # ground beyond this is all haze (and keeps texture coordinates small)
+
+    def _ground(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """Image (H, W, 3) uint8 of the ground and sky seen from ``T_world_cam``.
+
+        The colour is ``texture * alpha + beta`` with alpha (fade to mean, fog, sky mask) and beta
+        computed on the half-resolution grid and resized; only the texture lookup is full resolution.
+        """
+        cam = self.cam
+        W, H = cam.width_px, cam.height_px
+        hw, hh = self._hw
+        R = T_world_cam[:3, :3].astype(np.float32)
+        o = T_world_cam[:3, 3].astype(np.float32)
+        d = self._rays_half @ R.T  # (N, 3) world directions
+        dz = d[:, 2]
+        dn = np.sqrt(np.einsum("ij,ij->i", d, d))
+        above = o[2] < 0
+        ground = dz > 1e-4 if above else np.zeros(len(d), bool)
+        t = np.where(ground, -o[2] / np.where(ground, dz, 1.0), 0.0).astype(np.float32)
+        t = np.minimum(t, self.MAX_DIST_M / np.maximum(dn, 1.0))
+        dist = t * dn
+        # texture pixel coordinates, offset by whole tiles near the camera to stay small for remap
+        scale = self.TEX_PX / self.TILE_M
+        off_e = math.floor(float(o[1]) / self.TILE_M) * self.TILE_M
+        off_n = math.floor(float(o[0]) / self.TILE_M) * self.TILE_M
+        mx = ((o[1] - off_e) + t * d[:, 1]) * scale
+        my = ((o[0] - off_n) + t * d[:, 0]) * scale
+        maps = cv2.resize(np.dstack([mx.reshape(hh, hw), my.reshape(hh, hw)]), (W, H), interpolation=cv2.INTER_LINEAR)
+        # in-range coordinates take OpenCV's fast path (wrap only at the tile's last texel): 2-3x faster
+        maps -= np.floor(maps * (1.0 / self.TEX_PX)) * self.TEX_PX
+        tex = cv2.remap(self.texture, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        # blend factors on the half grid: out = tex * alpha + beta
+        footprint = dist * dn / (cam.fx_px * np.maximum(dz, 1e-4))
+        fade = np.clip((footprint - 1.5 * self.texel_m) / (8.0 * self.texel_m), 0.0, 1.0)
+        fog = 1.0 - np.exp(-dist / self.FOG_M)
+        g = ground.astype(np.float32)
+        keep = (1.0 - fade) * (1.0 - fog) * g  # weight of the texture
+        up = np.sqrt(np.clip(-dz / np.maximum(dn, 1e-6), 0.0, 1.0))
+        sky = SKY_HORIZON_BGR[None] + up[:, None] * (SKY_ZENITH_BGR - SKY_HORIZON_BGR)[None]
+        beta = (g * (1.0 - fog) * fade)[:, None] * self.tex_mean[None] + (g * fog)[:, None] * (0.92 * SKY_HORIZON_BGR)[None]
+        beta += (1.0 - g)[:, None] * sky
+        alpha_u8 = cv2.resize(np.clip(keep * 255.0, 0, 255).astype(np.uint8).reshape(hh, hw), (W, H), interpolation=cv2.INTER_LINEAR)
+        beta_u8 = cv2.resize(np.clip(beta, 0, 255).astype(np.uint8).reshape(hh, hw, 3), (W, H), interpolation=cv2.INTER_LINEAR)
+        img = cv2.multiply(tex, cv2.merge([alpha_u8, alpha_u8, alpha_u8]), scale=1.0 / 255.0)
+        return cv2.add(img, beta_u8)
+
+    def _ground_points(self, T_world_cam: np.ndarray, x0: int, y0: int, x1: int, y1: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Ground points (P, 3) seen by every ``step``-th pixel centre of a region, and their mask bool."""
+        cam = self.cam
+        xs = (np.arange(x0, x1, step) + 0.5 * step - cam.cx_px) / cam.fx_px
+        ys = (np.arange(y0, y1, step) + 0.5 * step - cam.cy_px) / cam.fy_px
+        X, Y = np.meshgrid(xs, ys)
+        d = np.stack([X, Y, np.ones_like(X)], -1) @ T_world_cam[:3, :3].T
+        o = T_world_cam[:3, 3]
+        mask = (d[..., 2] > 1e-4) & (o[2] < 0)
+        dm = d[mask]
+        t = -o[2] / dm[:, 2]
+        return o[None] + t[:, None] * dm, mask
+
+    # ------------------------------------------------------------------ shadow
+    def _shadow(self, img: np.ndarray, ell: Ellipsoids, T_world_cam: np.ndarray) -> None:
+        L = self.sun_world
+        if L[2] > -0.05:  # sun at or below the horizon: no sharp shadow
+            return
+        c = ell.centers
+        rmax = np.sqrt(np.max(np.linalg.eigvalsh(ell.B), axis=1))
+        foot = c - (c[:, 2:3] / L[2]) * L[None, :]
+        pts = []
+        for dn_, de_ in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            for base in (foot, c):
+                p = base.copy()
+                p[:, 0] += dn_ * rmax
+                p[:, 1] += de_ * rmax
+                p[:, 2] = 0.0
+                pts.append(p)
+        uv, z = self.cam.project(T_world_cam, np.concatenate(pts))
+        ok = z > 0.05
+        if not ok.any():
+            return
+        uv = uv[ok]
+        W, H = self.cam.width_px, self.cam.height_px
+        x0, y0 = max(int(np.floor(uv[:, 0].min())), 0), max(int(np.floor(uv[:, 1].min())), 0)
+        x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1, W), min(int(np.ceil(uv[:, 1].max())) + 1, H)
+        if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > 250_000:
+            return
+        g, gmask = self._ground_points(T_world_cam, x0, y0, x1, y1, step=2)  # soft shadow: half resolution
+        if len(g) == 0:
+            return
+        ML = ell.M @ L  # (E, 3)
+        Mcg = (c[:, None, :] - g[None, :, :]) @ np.swapaxes(ell.M, 1, 2)  # (E, P, 3)
+        a = np.sum(ML * ML, -1)[:, None]
+        b = np.einsum("ei,epi->ep", ML, Mcg, optimize=True)
+        cc = np.einsum("epi,epi->ep", Mcg, Mcg, optimize=True) - 1.0
+        disc = b * b - a * cc
+        hit = (disc > 0) & ((b + np.sqrt(np.maximum(disc, 0))) > 0)
+        sh = np.zeros(gmask.shape, np.float32)
+        sh[gmask] = hit.any(0).astype(np.float32)
+        sh = cv2.resize(sh, (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+        roi = img[y0:y1, x0:x1]
+        roi[:] = (roi.astype(np.float32) * (1.0 - 0.45 * sh)[..., None]).astype(np.uint8)
+
+    # ------------------------------------------------------------------ person
+    def _person(self, img: np.ndarray, ell_cam: Ellipsoids, box: np.ndarray) -> tuple[int, int, int, int] | None:
+        """Ray-cast the ellipsoids (camera frame) over the pixels of ``box`` and composite them into img."""
+        cam = self.cam
+        W, H = cam.width_px, cam.height_px
+        x0, y0 = max(int(np.floor(box[0])), 0), max(int(np.floor(box[1])), 0)
+        x1, y1 = min(int(np.ceil(box[2])), W), min(int(np.ceil(box[3])), H)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        w, h = x1 - x0, y1 - y0
+        ss = float(self.supersample)
+        while ss > 1 and w * h * ss * ss > self.max_person_samples:
+            ss -= 1
+        if w * h * ss * ss > self.max_person_samples:  # huge on screen: ray-cast coarser, resize up
+            ss = math.sqrt(self.max_person_samples / (w * h))
+        sw, sh = max(int(round(w * ss)), 1), max(int(round(h * ss)), 1)
+        # sample grid: sample (i, j) of the supersampled ROI looks along d = (X[j], Y[i], 1)
+        sx, sy = w / sw, h / sh
+        X = ((x0 + (np.arange(sw) + 0.5) * sx - cam.cx_px) / cam.fx_px).astype(np.float32)
+        Y = ((y0 + (np.arange(sh) + 0.5) * sy - cam.cy_px) / cam.fy_px).astype(np.float32)
+        boxes, front = ellipsoid_boxes(cam, ell_cam)
+        zbuf = np.full((sh, sw), np.inf, np.float32)
+        kbuf = np.zeros((sh, sw), np.int64)
+        G_all = np.swapaxes(ell_cam.M, 1, 2) @ ell_cam.M  # (E, 3, 3): |M(x - c)|^2 = (x - c)^T G (x - c)
+        for e in np.nonzero(front)[0]:
+            # this ellipsoid's own box in sample indices: only those samples can hit it
+            i0 = max(int(np.floor((boxes[e, 1] - y0) / sy)), 0)
+            i1 = min(int(np.ceil((boxes[e, 3] - y0) / sy)) + 1, sh)
+            j0 = max(int(np.floor((boxes[e, 0] - x0) / sx)), 0)
+            j1 = min(int(np.ceil((boxes[e, 2] - x0) / sx)) + 1, sw)
+            if i1 <= i0 or j1 <= j0:
+                continue
+            G = G_all[e].astype(np.float32)
+            c = ell_cam.centers[e].astype(np.float32)
+            g = G @ c
+            x = X[None, j0:j1]
+            y = Y[i0:i1, None]
+            # ray s * d, d = (x, y, 1): a s^2 - 2 b s + cc = 0
+            a = G[0, 0] * x * x + G[1, 1] * y * y + G[2, 2] + 2 * G[0, 1] * x * y + 2 * G[0, 2] * x + 2 * G[1, 2] * y
+            b = g[0] * x + g[1] * y + g[2]
+            cc = float(c @ g) - 1.0
+            disc = b * b - a * cc
+            with np.errstate(invalid="ignore"):
+                s_hit = (b - np.sqrt(disc)) / a
+            zb = zbuf[i0:i1, j0:j1]
+            upd = (disc > 0) & (s_hit > 0.05) & (s_hit < zb)
+            zb[upd] = s_hit[upd]
+            kbuf[i0:i1, j0:j1][upd] = e
+        hit = np.isfinite(zbuf).ravel()
+        if not hit.any():
+            return (x0, y0, x1, y1)
+        XX, YY = np.meshgrid(X, Y)
+        d = np.stack([XX.ravel(), YY.ravel(), np.ones(XX.size, np.float32)], -1)
+        z = zbuf.ravel()
+        kh = kbuf.ravel()[hit]
+        p = d[hit] * z[hit, None]
+        C = ell_cam.centers.astype(np.float32)
+        n = np.einsum("pij,pj->pi", G_all.astype(np.float32)[kh], p - C[kh])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        lam = np.clip(n @ self._sun_cam.astype(np.float32), 0.0, None)
+        sky = 0.5 + 0.5 * (n @ self._up_cam.astype(np.float32))
+        shade = 0.38 + 0.62 * lam + 0.18 * sky
+        mat = ell_cam.material
+        col = np.zeros((d.shape[0], 3), np.float32)
+        col[hit] = self.material_bgr[mat[kh]] * shade[:, None]
+        alpha = hit.astype(np.float32)
+        col = col.reshape(sh, sw, 3)
+        alpha = alpha.reshape(sh, sw)
+        if (sw, sh) != (w, h):
+            interp = cv2.INTER_AREA if sw > w else cv2.INTER_LINEAR
+            col = cv2.resize(col, (w, h), interpolation=interp)
+            alpha = cv2.resize(alpha, (w, h), interpolation=interp)
+        roi = img[y0:y1, x0:x1]
+        out = roi.astype(np.float32) * (1.0 - alpha)[..., None] + col  # col is premultiplied by coverage
+        roi[:] = np.clip(out, 0, 255).astype(np.uint8)
+        return (x0, y0, x1, y1)
+
+    # ------------------------------------------------------------------ frame
+    def render(self, T_world_cam: np.ndarray, joints_ned_m: np.ndarray | None) -> RenderedFrame:
+        """One frame: ground, sky, shadow and the person (None: no person) seen from ``T_world_cam``."""
+        T_world_cam = np.asarray(T_world_cam, dtype=float)
+        tm: dict[str, float] = {}
+        t0 = time.perf_counter()
+        img = self._ground(T_world_cam)
+        t1 = time.perf_counter()
+        tm["ground_ms"] = (t1 - t0) * 1e3
+        gt = None
+        roi = None
+        if joints_ned_m is not None:
+            joints_ned_m = np.asarray(joints_ned_m, dtype=float)
+            ell = body_ellipsoids(joints_ned_m)
+            if self.shadows:
+                self._shadow(img, ell, T_world_cam)
+            t2 = time.perf_counter()
+            tm["shadow_ms"] = (t2 - t1) * 1e3
+            T_cw = invert_T(T_world_cam)
+            R_cw, t_cw = T_cw[:3, :3], T_cw[:3, 3]
+            self._sun_cam = R_cw @ self.sun_world
+            self._up_cam = R_cw @ np.array([0.0, 0.0, -1.0])
+            gt = project_person(self.cam, T_world_cam, joints_ned_m, ell)
+            if gt.box_px is not None:
+                roi = self._person(img, ell.transformed(R_cw, t_cw), gt.box_px)
+            tm["person_ms"] = (time.perf_counter() - t2) * 1e3
+        tm["total_ms"] = (time.perf_counter() - t0) * 1e3
+        return RenderedFrame(img, gt, roi, tm)
