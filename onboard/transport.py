@@ -51,7 +51,7 @@ from typing import Any, Generic, Literal, TypeVar
 import zenoh
 
 from shared_msgs import keys as _keys
-from shared_msgs.codec import MessageError, decode, encode, stamp_sent
+from shared_msgs.codec import MessageError, decode, encode, stamp_sent, validate
 from shared_msgs.messages import Message, now_ns
 from skycap.errors import SkycapError
 
@@ -391,7 +391,8 @@ class Transport:
 
         Sets ``msg.header.t_sent_ns`` (now) and ``msg.header.seq`` (per-key counter from 1) **in place**.
         ``latch=True`` also keeps these bytes as the key's latest value, served to :meth:`query_latest`
-        (use it for plans and camera info). Commands, acks and plans are never dropped under congestion
+        (use it for plans and camera info). Raises :class:`shared_msgs.MessageError` for a message that
+        receivers would refuse (NaN, wrong array length, wrong schema version). Commands, acks and plans are never dropped under congestion
         (Zenoh blocks instead); camera images go with low priority.
         """
         if not isinstance(msg, Message):
@@ -403,6 +404,7 @@ class Transport:
             pub = self._publisher(key)
         msg.header.seq = seq
         stamp_sent(msg)
+        validate(msg)  # a message receivers would refuse fails here, in the sender, with the reason
         data = encode(msg)
         self._put(pub, key, data)
         if latch:

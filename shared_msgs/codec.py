@@ -20,7 +20,7 @@ from skycap.errors import SkycapError
 
 T = TypeVar("T", bound=Message)
 
-__all__ = ["MessageError", "encode", "decode", "stamp_sent", "TYPE_BY_TAG"]
+__all__ = ["MessageError", "encode", "decode", "validate", "stamp_sent", "TYPE_BY_TAG"]
 
 TYPE_BY_TAG: dict[str, type[Message]] = {t.__struct_config__.tag: t for t in MESSAGE_TYPES}
 
@@ -70,10 +70,11 @@ def decode(data: bytes | bytearray | memoryview, expected: type[T] | None = None
             f"Sender and receiver run different skycap versions: update both"
         )
     if probe.header.schema_version != cls.SCHEMA_VERSION:
+        older = probe.header.schema_version < cls.SCHEMA_VERSION
         raise MessageError(
-            f"{probe.type} schema version {probe.header.schema_version}{where} from sender "
-            f"{probe.header.sender_id!r}, this build speaks version {cls.SCHEMA_VERSION}; "
-            f"update skycap on the {'older' if probe.header.schema_version < cls.SCHEMA_VERSION else 'receiving'} side"
+            f"{probe.type} schema version {probe.header.schema_version} sent by {probe.header.sender_id!r}{where}, "
+            f"this build speaks version {cls.SCHEMA_VERSION}; update skycap on "
+            f"{'the sender (older side)' if older else 'this receiving side (older side)'}"
         )
     if expected is not None and cls is not expected:
         raise MessageError(f"expected a {expected.__struct_config__.tag} message{where}, got {probe.type}")
@@ -85,7 +86,56 @@ def decode(data: bytes | bytearray | memoryview, expected: type[T] | None = None
     except (msgspec.DecodeError, msgspec.ValidationError) as e:
         raise MessageError(f"invalid {probe.type} message{where} from {probe.header.sender_id!r}: {e}") from None
     _check_finite(msg, probe.type, where)
+    _check_shapes(msg, probe.type, where, probe.header.sender_id)
     return msg  # type: ignore[return-value]
+
+
+def validate(msg: Message) -> Message:
+    """Raise :class:`MessageError` if ``msg`` could not be decoded by a receiver (NaN/inf, wrong lengths,
+    header version not the type's); returns ``msg``. The transport calls it before publishing."""
+    tag = type(msg).__struct_config__.tag
+    if msg.header.schema_version != type(msg).SCHEMA_VERSION:
+        raise MessageError(
+            f"{tag} message has header.schema_version {msg.header.schema_version}, this build speaks "
+            f"{type(msg).SCHEMA_VERSION}; build headers with {type(msg).__name__}.make_header()"
+        )
+    _check_finite(msg, tag, "")
+    _check_shapes(msg, tag, "", msg.header.sender_id)
+    return msg
+
+
+# Fixed lengths of flattened arrays: (message type, field) -> allowed lengths, what they hold.
+_LENGTHS: dict[tuple[str, str], tuple[tuple[int, ...], str]] = {
+    ("camera_info", "T_body_cam"): ((0, 16), "a row-major 4x4 transform (or empty)"),
+    ("camera_frame", "T_world_cam"): ((0, 16), "a row-major 4x4 transform (or empty)"),
+    ("detections", "T_world_cam"): ((16,), "a row-major 4x4 transform"),
+    ("detections", "T_world_cam_cov"): ((0, 36), "a row-major 6x6 covariance (or empty)"),
+    ("target_estimate", "covariance"): ((36,), "a row-major 6x6 covariance"),
+    ("sim_truth", "person_joints_ned_m"): ((51,), "COCO-17 joints, (x, y, z) each"),
+}
+_DISTORTION_LENGTHS = {"none": (0,), "plumb_bob": (5,)}
+
+
+def _check_len(values, allowed: tuple[int, ...], what: str, tag: str, where: str, sender: str, path: str) -> None:
+    if len(values) not in allowed:
+        raise MessageError(
+            f"invalid {tag} message{where} from {sender!r}: `{path}` has {len(values)} values, expected "
+            f"{' or '.join(map(str, allowed))} ({what})"
+        )
+
+
+def _check_shapes(msg: Message, tag: str, where: str, sender: str) -> None:
+    """Refuse flattened arrays of the wrong length (they would be reshaped wrongly downstream)."""
+    for (t, field), (allowed, what) in _LENGTHS.items():
+        if t == tag:
+            _check_len(getattr(msg, field), allowed, what, tag, where, sender, f"$.{field}")
+    if tag == "camera_info":
+        allowed = _DISTORTION_LENGTHS[msg.distortion_model]
+        _check_len(msg.distortion, allowed, f"{msg.distortion_model} coefficients", tag, where, sender, "$.distortion")
+    elif tag == "keypoints2d":
+        for i, p in enumerate(msg.persons):
+            _check_len(p.keypoints_px, (34,), "17 (u, v) pairs", tag, where, sender, f"$.persons[{i}].keypoints_px")
+            _check_len(p.confidence, (17,), "17 confidences", tag, where, sender, f"$.persons[{i}].confidence")
 
 
 def _check_finite(obj, tag: str, where: str, path: str = "$") -> None:

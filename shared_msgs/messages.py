@@ -83,6 +83,7 @@ class VehicleState(Message, tag="vehicle_state"):
     q_world_body: tuple[float, float, float, float]  #: body FRD -> NED, (w, x, y, z)
     position_cov_m2: tuple[float, float, float] = (1.0, 1.0, 1.0)  #: diagonal (n, e, d) variance
     attitude_cov_rad2: tuple[float, float, float] = (3e-4, 3e-4, 3e-4)  #: diagonal (roll, pitch, yaw)
+    velocity_cov_m2_s2: tuple[float, float, float] = (0.01, 0.01, 0.01)  #: diagonal (n, e, d) variance
     latitude_deg: float = 0.0
     longitude_deg: float = 0.0
     altitude_amsl_m: float = 0.0

@@ -1,0 +1,49 @@
+"""Golden encodings: the committed bytes of every message type are the wire format.
+
+A change that alters them (renamed/reordered/retyped field, new tag) fails here. If the change is
+deliberate: bump the type's SCHEMA_VERSION, run ``python tests/msgs/golden_fixtures.py`` (or set
+``SKYCAP_REGEN_GOLDEN=1``) and commit the regenerated files with the change.
+"""
+
+from __future__ import annotations
+
+import os
+
+import msgspec
+import pytest
+
+from golden_fixtures import GOLDEN_DIR, examples, golden_path, write_golden
+from shared_msgs.codec import TYPE_BY_TAG, decode, encode
+
+EXAMPLES = examples()
+
+if os.environ.get("SKYCAP_REGEN_GOLDEN") == "1":
+    write_golden()
+
+
+def test_one_golden_file_per_message_type() -> None:
+    on_disk = sorted(p.stem for p in GOLDEN_DIR.glob("*.msgpack"))
+    assert on_disk == sorted(TYPE_BY_TAG), (
+        "tests/msgs/golden/ must hold exactly one <type>.msgpack per message type; "
+        "run python tests/msgs/golden_fixtures.py after adding or removing a type"
+    )
+
+
+@pytest.mark.parametrize("tag", sorted(EXAMPLES))
+def test_encoding_matches_golden_bytes(tag: str) -> None:
+    golden = golden_path(tag).read_bytes()
+    assert encode(EXAMPLES[tag]) == golden, (
+        f"the wire encoding of {tag} changed; if deliberate, bump its SCHEMA_VERSION and regenerate the golden "
+        f"files (python tests/msgs/golden_fixtures.py)"
+    )
+
+
+@pytest.mark.parametrize("tag", sorted(EXAMPLES))
+def test_golden_bytes_decode_to_the_example(tag: str) -> None:
+    golden = golden_path(tag).read_bytes()
+    msg = decode(golden, type(EXAMPLES[tag]))
+    assert msg == EXAMPLES[tag]
+    raw = msgspec.msgpack.decode(golden)  # generic MessagePack view: tag and header are on the wire
+    assert raw["type"] == tag
+    assert raw["header"]["schema_version"] == type(EXAMPLES[tag]).SCHEMA_VERSION
+    assert set(raw) == {"type", *type(EXAMPLES[tag]).__struct_fields__}
