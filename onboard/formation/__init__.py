@@ -1,0 +1,1 @@
+"""Formation control on board: the decentralised formation MPC, slot assignment and failsafe decisions."""
