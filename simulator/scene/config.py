@@ -95,6 +95,9 @@ class CameraConfig:
     mount: str = "gimbal"
     #: camera pitch relative to the horizon (gimbal) or to the body (fixed); negative = down
     pitch_deg: float = -20.0
+    #: gimbal mount: follow the gimbal pitch in the vehicle truth (``VehicleTruth.gimbal_pitch_rad``)
+    #: rather than ``pitch_deg``
+    pitch_from_truth: bool = True
     #: camera position in the body FRD frame (metres)
     lever_arm_body_m: list[float] = field(default_factory=lambda: [0.1, 0.0, 0.05])
     rate_hz: float = 10.0
