@@ -1,0 +1,208 @@
+"""Flight summary: how well a recorded orbit flight went, from the drones' MCAP files and the simulator truth.
+
+    summary = summarize_flight("flights/demo")        # reads plan.json, drone_*.mcap, truth.mcap
+    print(format_table(summary))
+
+Per drone (from its own recording): ``setpoint_rate_hz`` (the agent's measured offboard stream during the
+orbit, from its health reports), ``state_rate_hz`` (recorded vehicle state samples per second during the
+orbit), ``frames_recorded`` / ``image_rate_hz`` (camera frames in its file); against the **true**
+trajectory (``truth.mcap``) during the steady orbit phase (from ``plan.start_time + settle_s`` until the
+first land command): ``orbit_radius_rmse_m``, ``altitude_rmse_m``, ``phase_error_deg_rms`` (angle about
+the centre minus the slot angle, so including a lag common to the fleet) and
+``phase_spacing_error_deg_rms`` (the same with the fleet's mean error at each instant removed: how well
+the spacing is kept); ``orbit_radius_rmse_est_m`` / ``altitude_rmse_est_m`` are the same errors against the
+vehicle's own recorded estimate (the control's tracking; the gap to the truth errors is the autopilot's
+estimation error, e.g. a GPS bias, which the agent cannot see). Fleet-wide: ``min_separation_m`` (closest approach of two drones over the whole
+flight, truth), ``flight_s`` (first take-off to last touch-down, truth above ``airborne_alt_m``).
+
+The computations (:func:`orbit_errors`, :func:`min_pairwise_distance_m`) are plain numpy functions.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from shared_msgs import CameraFrame, Command, Health, OrbitPlan, SimTruth, VehicleState
+from skycap.errors import SkycapError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SummaryError", "orbit_errors", "min_pairwise_distance_m", "summarize_flight", "format_table",
+           "save_plan", "load_plan", "write_summary"]
+
+
+class SummaryError(SkycapError):
+    """A flight folder that lacks what the summary needs."""
+
+
+def save_plan(plan: OrbitPlan, path: str | Path) -> Path:
+    p = Path(path)
+    p.write_bytes(msgspec.json.format(msgspec.json.encode(plan), indent=2))
+    return p
+
+
+def load_plan(path: str | Path) -> OrbitPlan:
+    try:
+        return msgspec.json.decode(Path(path).read_bytes(), type=OrbitPlan)
+    except (OSError, msgspec.DecodeError, msgspec.ValidationError) as e:
+        raise SummaryError(f"cannot read the orbit plan {path}: {e}") from None
+
+
+def _wrap_rad(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def orbit_errors(plan: OrbitPlan, drone_ids: list[str], t_s: np.ndarray, pos_ned_m: np.ndarray) -> dict[str, dict[str, float]]:
+    """Errors of true positions against the plan.
+
+    t_s: (T,) UNIX seconds; pos_ned_m: (D, T, 3) true positions of ``drone_ids`` at those times.
+    Returns per drone: orbit_radius_rmse_m, altitude_rmse_m, phase_error_deg_rms, phase_spacing_error_deg_rms.
+    """
+    c = np.asarray(plan.center_ned_m, dtype=float)
+    t0 = plan.start_time_ns * 1e-9
+    w = plan.direction * plan.angular_speed_rad_s
+    rel = pos_ned_m[..., :2] - c[:2]
+    radius = np.hypot(rel[..., 0], rel[..., 1])
+    angle = np.arctan2(rel[..., 1], rel[..., 0])
+    slot = np.stack([plan.phase_offset_rad[d] + w * np.maximum(0.0, t_s - t0) for d in drone_ids])
+    phase_err = _wrap_rad(angle - slot)  # (D, T)
+    mean_err = np.angle(np.exp(1j * phase_err).mean(axis=0))  # circular mean over drones
+    spacing_err = _wrap_rad(phase_err - mean_err)
+    out = {}
+    for k, d in enumerate(drone_ids):
+        out[d] = {
+            "orbit_radius_rmse_m": float(np.sqrt(np.mean((radius[k] - plan.radius_m) ** 2))),
+            "altitude_rmse_m": float(np.sqrt(np.mean((-pos_ned_m[k, :, 2] - plan.altitude_m) ** 2))),
+            "phase_error_deg_rms": float(np.degrees(np.sqrt(np.mean(phase_err[k] ** 2)))),
+            "phase_spacing_error_deg_rms": float(np.degrees(np.sqrt(np.mean(spacing_err[k] ** 2)))),
+        }
+    return out
+
+
+def min_pairwise_distance_m(pos_ned_m: np.ndarray) -> float:
+    """Smallest distance between two drones at the same instant; pos_ned_m: (D, T, 3). inf for D < 2."""
+    D = pos_ned_m.shape[0]
+    best = math.inf
+    for i in range(D):
+        for j in range(i + 1, D):
+            best = min(best, float(np.min(np.linalg.norm(pos_ned_m[i] - pos_ned_m[j], axis=-1))))
+    return best
+
+
+def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    from onboard.flightlog import FlightLog
+
+    ts, rows = [], []
+    for m in FlightLog(path).messages():
+        msg = m.msg
+        if not isinstance(msg, SimTruth):
+            continue
+        by_id = {v.drone_id: v.position_ned_m for v in msg.vehicles}
+        if not all(d in by_id for d in drone_ids):
+            continue
+        ts.append(msg.header.t_measurement_ns * 1e-9)
+        rows.append([by_id[d] for d in drone_ids])
+    if not ts:
+        raise SummaryError(f"{path} holds no simulator truth for {drone_ids}")
+    order = np.argsort(ts)
+    return np.asarray(ts)[order], np.transpose(np.asarray(rows, dtype=float)[order], (1, 0, 2))
+
+
+def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt_m: float = 0.3) -> dict:
+    """The summary dict of a flight folder (see the module docstring); writes nothing."""
+    from onboard.flightlog import FlightLog
+
+    flight_dir = Path(flight_dir)
+    plan = load_plan(flight_dir / "plan.json")
+    drone_ids = sorted(plan.phase_offset_rad, key=lambda d: (len(d), d))
+    per: dict[str, dict] = {}
+    t_land = math.inf
+    for d in drone_ids:
+        path = flight_dir / f"{d}.mcap"
+        if not path.is_file():
+            raise SummaryError(f"{path} is missing: the agent of {d} did not record")
+        state_t, state_p, frame_t, setpoint_hz = [], [], [], []
+        for m in FlightLog(path).messages(["state", "camera/image", "health", "gcs/cmd"]):
+            msg = m.msg
+            if isinstance(msg, VehicleState):
+                state_t.append(msg.header.t_measurement_ns * 1e-9)
+                state_p.append(msg.position_ned_m)
+            elif isinstance(msg, CameraFrame):
+                frame_t.append(msg.header.t_measurement_ns * 1e-9)
+            elif isinstance(msg, Health):
+                if msg.state == "orbit":
+                    setpoint_hz.append(msg.rates_hz.get("setpoint", 0.0))
+            elif isinstance(msg, Command) and msg.action == "land":
+                t_land = min(t_land, msg.header.t_sent_ns * 1e-9)
+        per[d] = {"_state_t": np.asarray(state_t), "_state_p": np.asarray(state_p, dtype=float).reshape(-1, 3),
+                  "_frame_t": np.asarray(frame_t),
+                  # the first report of the orbit covers the offboard start: skip it
+                  "setpoint_rate_hz": float(np.median(setpoint_hz[1:])) if len(setpoint_hz) > 1 else 0.0}
+    t_truth, pos = _read_truth(flight_dir / "truth.mcap", drone_ids)
+    t_start = plan.start_time_ns * 1e-9 + settle_s
+    t_end = min(t_land, t_truth[-1])
+    steady = (t_truth >= t_start) & (t_truth <= t_end)
+    if steady.sum() < 10:
+        raise SummaryError(f"no steady orbit phase in {flight_dir} (from plan start + {settle_s} s to the land "
+                           f"command): fly longer (--duration)")
+    errs = orbit_errors(plan, drone_ids, t_truth[steady], pos[:, steady])
+    out_drones = {}
+    for d in drone_ids:
+        st, ft = per[d]["_state_t"], per[d]["_frame_t"]
+        sel = (st >= t_start) & (st <= t_end)
+        in_orbit = st[sel]
+        # the same errors against the vehicle's own estimate: what the control achieves; the difference
+        # to the truth errors is the autopilot's estimation error (GPS-like bias), invisible to the agent
+        est = orbit_errors(plan, [d], in_orbit, per[d]["_state_p"][sel][None])[d] if sel.sum() >= 10 else {}
+        out_drones[d] = {
+            "setpoint_rate_hz": round(per[d]["setpoint_rate_hz"], 2),
+            **{k: round(v, 3) for k, v in errs[d].items()},
+            "orbit_radius_rmse_est_m": round(est.get("orbit_radius_rmse_m", math.nan), 3),
+            "altitude_rmse_est_m": round(est.get("altitude_rmse_m", math.nan), 3),
+            "frames_recorded": int(len(ft)),
+            "image_rate_hz": round(float((len(ft) - 1) / (ft[-1] - ft[0])) if len(ft) > 1 else 0.0, 2),
+            "state_rate_hz": round(float(len(in_orbit) / (t_end - t_start)), 2),
+        }
+    alt = -pos[..., 2]
+    flying = np.any(alt > airborne_alt_m, axis=0)
+    flight_s = float(t_truth[flying][-1] - t_truth[flying][0]) if flying.any() else 0.0
+    return {
+        "flight_dir": str(flight_dir),
+        "plan_id": plan.plan_id,
+        "drones": out_drones,
+        "fleet": {
+            "min_separation_m": round(min_pairwise_distance_m(pos), 3),
+            "configured_min_separation_m": plan.min_separation_m,
+            "flight_s": round(flight_s, 2),
+            "steady_orbit_s": round(float(t_end - t_start), 2),
+        },
+    }
+
+
+def format_table(summary: dict) -> str:
+    cols = ["setpoint_rate_hz", "orbit_radius_rmse_m", "altitude_rmse_m", "phase_error_deg_rms",
+            "phase_spacing_error_deg_rms", "orbit_radius_rmse_est_m", "altitude_rmse_est_m", "frames_recorded",
+            "image_rate_hz", "state_rate_hz"]
+    short = ["setpt_hz", "radius_m", "alt_m", "phase_deg", "spacing_deg", "radius_est_m", "alt_est_m", "frames",
+             "img_hz", "state_hz"]
+    lines = ["errors are RMS against the true trajectory (radius_m, alt_m, phase) and the vehicle's estimate (*_est_m)",
+             "drone     " + "".join(f"{s:>13s}" for s in short)]
+    for d, row in summary["drones"].items():
+        lines.append(f"{d:10s}" + "".join(f"{row[c]:>13.3f}" if isinstance(row[c], float) else f"{row[c]:>13d}"
+                                          for c in cols))
+    f = summary["fleet"]
+    lines.append(f"fleet: min_separation_m={f['min_separation_m']:.2f} (configured {f['configured_min_separation_m']}), "
+                 f"flight_s={f['flight_s']:.1f}, steady_orbit_s={f['steady_orbit_s']:.1f}")
+    return "\n".join(lines)
+
+
+def write_summary(flight_dir: str | Path, **kw) -> dict:
+    s = summarize_flight(flight_dir, **kw)
+    (Path(flight_dir) / "summary.json").write_text(json.dumps(s, indent=2))
+    return s

@@ -1,0 +1,376 @@
+"""``skycap demo``: a full simulated flight, headless: N drones orbit the person, then the flight is summarised.
+
+    skycap demo --out flights/demo                     # 3 drones, 60 s of orbit
+    skycap demo --drones 2 --duration 20 --out /tmp/f --set orbit.radius_m=6
+
+What it launches (each an OS process, as on the real system; logs in ``<out>/logs/``):
+
+1. the simulator (``skycap sim``: PX4-like vehicles over MAVLink UDP; the drones stand on the ground under
+   their orbit slots) and its ground-truth publisher (SimTruth on ``sim/truth``, recorded to ``truth.mcap``);
+2. a camera node per drone (the simulator's scene camera: CameraInfo, CameraFrame, simulated Keypoints2D),
+   when the simulator provides one;
+3. one onboard agent per drone (``skycap agent``: MAVSDK to its vehicle, Zenoh to the fleet, MCAP recording);
+4. the fleet client, in this process (ground-station heartbeat; take off, orbit plan, start, then land).
+
+Then it stops everything cleanly (SIGTERM: agents close their recordings), runs ``skycap reconstruct
+<out>`` when that command exists, and writes ``summary.json`` (see :mod:`groundstation.summary`) and
+prints its table. The flight folder: ``drone_<i>.mcap``, ``truth.mcap``, ``config.toml`` (resolved),
+``plan.json``, ``summary.json``, ``logs/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from skycap.config import add_config_args
+from skycap.errors import SkycapError
+
+log = logging.getLogger("skycap.demo")
+
+__all__ = ["DemoConfig", "OrbitDemoConfig", "register", "run_demo"]
+
+
+@dataclass
+class OrbitDemoConfig:
+    """The orbit flown (world NED; the person walks around the origin)."""
+
+    center_ned_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    radius_m: float = 8.0
+    altitude_m: float = 6.0
+    angular_speed_rad_s: float = 0.15
+    direction: int = 1
+    #: shared start time = this long after the plan is sent
+    start_in_s: float = 3.0
+    min_separation_m: float = 3.0
+    #: spawn the drones on the ground under their orbit slots (else: the simulator's default line)
+    spawn_under_slots: bool = True
+
+
+@dataclass
+class DemoConfig:
+    """Configuration of ``skycap demo`` (``--config demo.toml``, ``--set orbit.radius_m=6``)."""
+
+    drones: int = 3
+    #: seconds of orbit (take-off before and landing after come on top)
+    duration_s: float = 60.0
+    out: str = "flights/demo"
+    fleet: str = "demo"
+    #: Zenoh rendezvous endpoint opened by this launcher
+    zenoh_endpoint: str = "tcp/127.0.0.1:7447"
+    #: first MAVLink port (vehicle i sends to mavlink_base + i; its agent listens there)
+    mavlink_base: int = 14540
+    orbit: OrbitDemoConfig = field(default_factory=OrbitDemoConfig)
+    #: truth publishing rate (Hz) of the simulator node
+    truth_hz: float = 50.0
+    #: extra ``--set`` overrides for the simulator, the camera nodes and each agent
+    sim_set: list[str] = field(default_factory=list)
+    camera_set: list[str] = field(default_factory=list)
+    agent_set: list[str] = field(default_factory=list)
+    cameras: bool = True
+    reconstruct: bool = True
+    #: timeouts (s)
+    ready_timeout_s: float = 60.0
+    takeoff_timeout_s: float = 60.0
+    land_timeout_s: float = 60.0
+    #: steady-orbit settling time excluded from the errors (s after the plan's start time)
+    settle_s: float = 8.0
+
+    def validate(self) -> "DemoConfig":
+        from skycap.config import ConfigError
+
+        if not 1 <= self.drones <= 20:
+            raise ConfigError(f"drones={self.drones}: use 1..20")
+        if self.duration_s < self.settle_s + 5:
+            raise ConfigError(f"duration_s={self.duration_s} leaves no steady orbit after settle_s={self.settle_s}; "
+                              f"use --duration {self.settle_s + 10:.0f} or more")
+        return self
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="run a full simulated flight (N drones orbit the person), headless, and summarise it",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--drones", type=int, default=None, help="number of drones (default 3)")
+    p.add_argument("--duration", type=float, default=None, help="seconds of orbit (default 60)")
+    p.add_argument("--out", type=Path, default=None, help="flight folder (default flights/demo)")
+    add_config_args(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from skycap.config import config_from_args
+
+    cfg = config_from_args(DemoConfig, args, {"drones": args.drones, "duration_s": args.duration, "out": args.out})
+    summary = run_demo(cfg.validate())
+    return 0 if summary is not None else 1
+
+
+def _drone_ids(n: int) -> list[str]:
+    return [f"drone_{i + 1}" for i in range(n)]
+
+
+def _has_command(name: str) -> bool:
+    from skycap.cli import build_parser
+
+    parser = build_parser()
+    for action in parser._subparsers._group_actions:  # noqa: SLF001 - argparse has no public accessor
+        if name in getattr(action, "choices", {}):
+            return True
+    return False
+
+
+class _Procs:
+    """Child processes of the demo, each with its log file; stopped in reverse order."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = log_dir
+        self.items: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        f = open(self.log_dir / f"{name}.log", "w")
+        log.info("starting %s: %s", name, " ".join(cmd))
+        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        self.items.append((name, p))
+        return p
+
+    def check_alive(self) -> None:
+        for name, p in self.items:
+            if p.poll() is not None:
+                raise SkycapError(f"{name} exited early (code {p.returncode}); see {self.log_dir / (name + '.log')}")
+
+    def stop(self, names: list[str] | None = None, timeout_s: float = 30.0) -> dict[str, int]:
+        """SIGTERM the named processes (all if None), wait, SIGKILL what is left; returns exit codes."""
+        chosen = [(n, p) for n, p in self.items if names is None or n in names]
+        for n, p in chosen:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        codes = {}
+        t_end = time.monotonic() + timeout_s
+        for n, p in chosen:
+            try:
+                codes[n] = p.wait(max(0.1, t_end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.error("%s did not stop within %.0f s: killing it", n, timeout_s)
+                os.killpg(p.pid, signal.SIGKILL)
+                codes[n] = p.wait()
+        return codes
+
+
+def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[float]]:
+    c = cfg.orbit.center_ned_m
+    return [[round(c[0] + cfg.orbit.radius_m * math.cos(phases[d]), 3), round(c[1] + cfg.orbit.radius_m * math.sin(phases[d]), 3)]
+            for d in _drone_ids(cfg.drones)]
+
+
+def run_demo(cfg: DemoConfig) -> dict | None:
+    """Run the whole demo; returns the summary dict (None when the flight produced none)."""
+    from groundstation.fleet import FleetClient, make_orbit_plan
+    from groundstation.summary import format_table, save_plan, write_summary
+    from onboard.orbit import evenly_spaced_phases
+    from onboard.recorder import Recorder, truth_log_path
+    from onboard.transport import Transport, TransportConfig
+    from shared_msgs import SimTruth, keys
+    from skycap.config import save_config
+
+    out = Path(cfg.out)
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    for old in [*out.glob("drone_*.mcap"), out / "truth.mcap", out / "summary.json", out / "plan.json"]:
+        old.unlink(missing_ok=True)
+    ids = _drone_ids(cfg.drones)
+    phases = evenly_spaced_phases(ids)
+    sim_set = [f"vehicles.count={cfg.drones}", f"ports.offboard_base={cfg.mavlink_base}", "ports.gcs_port=0"]
+    if cfg.orbit.spawn_under_slots:
+        spawn = ", ".join(f"[{n}, {e}]" for n, e in _spawn_positions(cfg, phases))
+        sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")
+    sim_set += cfg.sim_set
+    save_config(cfg, out / "config.toml")
+    py = [sys.executable, "-m", "skycap.cli"]
+    procs = _Procs(logs)
+    bus = Transport.open(TransportConfig.rendezvous(cfg.zenoh_endpoint), "demo")
+    truth_rec = Recorder(truth_log_path(out), node_id="sim", metadata={"fleet": cfg.fleet})
+    truth_sub = bus.subscribe(keys.sim_key(cfg.fleet, keys.TRUTH), lambda rx: truth_rec.record_received("truth", rx),
+                              SimTruth)
+    fleet = FleetClient(cfg.fleet, bus, heartbeat_hz=2.0)
+    summary = None
+    t_begin = time.monotonic()
+    try:
+        # 1. simulator (+ truth); 2. cameras; 3. agents
+        sim_cmd = [sys.executable, "-m", "skycap.demo", "--fleet", cfg.fleet, "--zenoh-connect",
+                   cfg.zenoh_endpoint, "--truth-hz", str(cfg.truth_hz), "--out", str(out)]
+        for s in sim_set:
+            sim_cmd += ["--set", s]
+        procs.start("sim", sim_cmd)
+        if cfg.cameras:
+            cam = _camera_command()
+            if cam is None:
+                log.warning("the simulator has no camera node yet: flying without cameras")
+            else:
+                for i, d in enumerate(ids):
+                    cmd = cam + ["--drone-id", d, "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint]
+                    for s in cfg.camera_set:
+                        cmd += ["--set", s]
+                    procs.start(f"camera_{d}", cmd)
+        for i, d in enumerate(ids):
+            cmd = py + ["agent", "--drone-id", d, "--fleet", cfg.fleet, "--connection",
+                        f"udpin://0.0.0.0:{cfg.mavlink_base + i}", "--record-dir", str(out),
+                        "--zenoh-connect", cfg.zenoh_endpoint]
+            for s in cfg.agent_set:
+                cmd += ["--set", s]
+            procs.start(d, cmd)
+
+        # 4. the flight
+        def all_(pred):
+            return lambda f: all(pred(f, d) for d in ids)
+
+        log.info("waiting for %d healthy drones", len(ids))
+        ok = fleet.wait_until(all_(lambda f, d: d in f.states and f.states[d].health_ok and d in f.healths),
+                              cfg.ready_timeout_s, "healthy drones")
+        procs.check_alive()
+        if not ok:
+            raise SkycapError(f"the drones did not report healthy within {cfg.ready_timeout_s:.0f} s; see {logs}")
+        acks = fleet.command("takeoff", wait_s=10, expect=ids, results=("accepted", "refused", "failed"))
+        _require(acks, ids, "takeoff")
+        if not fleet.wait_until(all_(lambda f, d: f.healths[d].state == "hover"), cfg.takeoff_timeout_s, "hover"):
+            raise SkycapError(f"not every drone reached hover within {cfg.takeoff_timeout_s:.0f} s; see {logs}")
+        o = cfg.orbit
+        plan = make_orbit_plan(ids, tuple(o.center_ned_m), o.radius_m, o.altitude_m, o.angular_speed_rad_s, o.direction,
+                               start_in_s=o.start_in_s, min_separation_m=o.min_separation_m, phase_offset_rad=phases)
+        save_plan(plan, out / "plan.json")
+        fleet.send_plan(plan)
+        _require(fleet.wait_acks(plan.plan_id, ids, 5), ids, "plan")
+        _require(fleet.command("start", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "start")
+        t_orbit_end = plan.start_time_ns * 1e-9 + cfg.duration_s
+        log.info("orbiting for %.0f s", cfg.duration_s)
+        next_table = time.time()
+        while time.time() < t_orbit_end:
+            procs.check_alive()
+            if time.time() >= next_table:
+                next_table += 10.0
+                print(fleet.table(), flush=True)
+            time.sleep(0.5)
+        _require(fleet.command("land", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "land")
+        if not fleet.wait_until(all_(lambda f, d: f.healths[d].state == "landed"), cfg.land_timeout_s, "landed"):
+            log.error("not every drone landed within %.0f s", cfg.land_timeout_s)
+        print(fleet.table(), flush=True)
+    finally:
+        codes = procs.stop([d for d in ids], timeout_s=30.0)
+        codes.update(procs.stop(None, timeout_s=15.0))
+        bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM)}
+        if bad:
+            log.warning("processes that did not exit cleanly: %s", bad)
+        fleet.close()
+        truth_sub.close()
+        truth_rec.close()
+        bus.close()
+    log.info("flight done in %.0f s; files in %s", time.monotonic() - t_begin, out)
+
+    if cfg.reconstruct:
+        if _has_command("reconstruct"):
+            r = subprocess.run(py + ["reconstruct", str(out)], stdout=open(logs / "reconstruct.log", "w"),
+                               stderr=subprocess.STDOUT)
+            log.info("skycap reconstruct %s: exit %d (log: %s)", out, r.returncode, logs / "reconstruct.log")
+        else:
+            log.info("no 'skycap reconstruct' command in this build: skipping reconstruction")
+    summary = write_summary(out, settle_s=cfg.settle_s)
+    print(format_table(summary), flush=True)
+    print(f"summary: {out / 'summary.json'}", flush=True)
+    return summary
+
+
+def _require(acks: dict, ids: list[str], what: str) -> None:
+    missing = [d for d in ids if d not in acks]
+    bad = {d: f"{a.result}: {a.reason}" for d, a in acks.items() if a.result in ("refused", "failed")}
+    if missing or bad:
+        raise SkycapError(f"{what}: no answer from {missing}, refused/failed by {bad}; see the logs folder")
+
+
+def _camera_command() -> list[str] | None:
+    """The simulator's per-drone camera node command, when it exists."""
+    try:
+        import importlib
+
+        importlib.import_module("simulator.scene.node")
+    except ModuleNotFoundError:
+        return None
+    return [sys.executable, "-m", "simulator.scene.node"]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The simulator node of the demo: ``skycap sim``'s SimWorld plus the ground truth (vehicles and, when the
+# scene is available, the person) published as SimTruth on ``sim/truth``. ``skycap sim`` does not publish
+# the truth (yet); this node does, in the simulator's own process, from a tick hook.
+def _sim_node_main(argv: list[str] | None = None) -> int:
+    import asyncio
+
+    import numpy as np
+
+    from onboard.transport import Transport, TransportConfig
+    from shared_msgs import SimTruth, VehicleTruth, keys
+    from simulator.config import SimConfig
+    from simulator.runner import SimWorld
+    from simulator.vehicle.autopilot import quat_wxyz_from_R
+    from skycap.cli import setup_logging
+    from skycap.config import load_config, save_config
+
+    ap = argparse.ArgumentParser(prog="python -m skycap.demo", description="the demo's simulator node")
+    ap.add_argument("--fleet", default="demo")
+    ap.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447")
+    ap.add_argument("--truth-hz", type=float, default=50.0)
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--set", action="append", default=[])
+    args = ap.parse_args(argv)
+    setup_logging("INFO")
+    cfg = load_config(SimConfig, overrides=args.set).validate()
+    if args.out is not None:
+        save_config(cfg, args.out / "logs" / "sim_config.toml")
+    world = SimWorld(cfg)
+    person = None
+    try:
+        from simulator.scene.config import PersonConfig
+        from simulator.scene.person import PersonSim
+
+        person = PersonSim(PersonConfig())
+    except Exception as e:  # the scene is optional for the flight
+        log.warning("no simulated person (%s): truth carries the vehicles only", e)
+    bus = Transport.open(TransportConfig.local_peer(args.zenoh_connect), "sim")
+    bus.declare_alive(keys.alive_key(args.fleet, keys.SIM))
+    key = keys.sim_key(args.fleet, keys.TRUTH)
+    zeros = tuple(0.0 for _ in range(51))
+
+    def publish_truth(t_ns: int, truths) -> None:
+        vehicles = [VehicleTruth(drone_id=f"drone_{v.index + 1}", position_ned_m=tuple(map(float, v.position_ned_m)),
+                                 velocity_ned_m_s=tuple(map(float, v.velocity_ned_m_s)),
+                                 q_world_body=tuple(map(float, quat_wxyz_from_R(v.R_world_body))))
+                    for v in truths]
+        extra = person.state_at(world.t_s).truth_fields() if person is not None else \
+            dict(person_joints_ned_m=zeros, person_root_ned_m=(0.0, 0.0, 0.0))
+        bus.publish(key, SimTruth(header=SimTruth.make_header(keys.SIM, t_ns), vehicles=vehicles, **extra))
+
+    world.add_tick_hook(publish_truth, rate_hz=args.truth_hz)
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        await world.run(stop, status_every_s=10.0)
+
+    try:
+        asyncio.run(main())
+    finally:
+        bus.close()
+    log.info("simulator node stopped after %.1f s (%d overruns)", world.t_s, world.overruns)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_sim_node_main())

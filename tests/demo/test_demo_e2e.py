@@ -1,0 +1,59 @@
+"""``skycap demo`` end to end, short: a simulator process, agent processes, the fleet client; checks the
+flight folder and that summary.json holds sane values (non-default ports so it can run beside a demo)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from onboard.transport import free_tcp_port
+
+
+def free_udp_base(n: int) -> int:
+    """A base port with ``n`` consecutive free UDP ports."""
+    import random
+    import socket
+
+    for _ in range(200):
+        base = random.randint(30000, 60000)
+        socks = []
+        try:
+            for i in range(n):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                s.bind(("0.0.0.0", base + i))
+                socks.append(s)
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError("no free UDP port range")
+
+pytestmark = pytest.mark.slow
+
+
+def test_short_demo_produces_a_sane_summary(tmp_path):
+    out = tmp_path / "flight"
+    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--drones", "2", "--duration", "20", "--out", str(out),
+           "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"", "--set", f"mavlink_base={free_udp_base(2)}",
+           "--set", "fleet=\"demotest\"", "--set", "reconstruct=false"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
+    for name in ("drone_1.mcap", "drone_2.mcap", "truth.mcap", "config.toml", "plan.json", "summary.json", "logs"):
+        assert (out / name).exists(), name
+    s = json.loads((out / "summary.json").read_text())
+    assert set(s["drones"]) == {"drone_1", "drone_2"}
+    for d, row in s["drones"].items():
+        assert row["setpoint_rate_hz"] >= 10.0, row
+        assert row["state_rate_hz"] >= 45.0, row
+        # tracking of the vehicle's own estimate; the truth adds the simulated GPS bias (~1 m std)
+        assert row["orbit_radius_rmse_est_m"] < 0.5 and row["altitude_rmse_est_m"] < 0.3, row
+        assert row["orbit_radius_rmse_m"] < 2.0 and row["altitude_rmse_m"] < 1.5, row
+        assert row["phase_spacing_error_deg_rms"] < 10.0, row
+    assert s["fleet"]["min_separation_m"] > s["fleet"]["configured_min_separation_m"]
+    assert 25.0 < s["fleet"]["flight_s"] < 90.0
+    assert "setpt_hz" in r.stdout  # the printed table

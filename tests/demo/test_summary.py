@@ -1,0 +1,55 @@
+"""Flight-summary computations on synthetic trajectories (pure numpy)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from groundstation.fleet import make_orbit_plan
+from groundstation.summary import min_pairwise_distance_m, orbit_errors
+from onboard.orbit import slot_state
+
+
+def _plan():
+    p = make_orbit_plan(["drone_1", "drone_2", "drone_3"], (1.0, 2.0, 0.0), radius_m=8.0, altitude_m=6.0,
+                        angular_speed_rad_s=0.2, start_in_s=1.0)
+    return p
+
+
+def _track(plan, t, radius_off=0.0, alt_off=0.0, lag_rad=(0.0, 0.0, 0.0)):
+    pos = []
+    c = np.array(plan.center_ned_m)
+    for k, d in enumerate(["drone_1", "drone_2", "drone_3"]):
+        rows = []
+        for ts in t:
+            p, _, _ = slot_state(plan, d, ts)
+            th = math.atan2(p[1] - c[1], p[0] - c[0]) - lag_rad[k]
+            r = plan.radius_m + radius_off
+            rows.append([c[0] + r * math.cos(th), c[1] + r * math.sin(th), -(plan.altitude_m + alt_off)])
+        pos.append(rows)
+    return np.array(pos)
+
+
+def test_perfect_track_has_zero_errors_and_offsets_are_measured():
+    plan = _plan()
+    t = plan.start_time_ns * 1e-9 + np.linspace(2, 40, 300)
+    e = orbit_errors(plan, ["drone_1", "drone_2", "drone_3"], t, _track(plan, t))
+    for d in e.values():
+        assert all(v == pytest.approx(0.0, abs=1e-9) for v in d.values())
+    e = orbit_errors(plan, ["drone_1", "drone_2", "drone_3"], t,
+                     _track(plan, t, radius_off=0.3, alt_off=-0.2, lag_rad=(0.1, 0.1, 0.2)))
+    assert e["drone_1"]["orbit_radius_rmse_m"] == pytest.approx(0.3)
+    assert e["drone_1"]["altitude_rmse_m"] == pytest.approx(0.2)
+    assert e["drone_3"]["phase_error_deg_rms"] == pytest.approx(math.degrees(0.2))
+    # a common lag is not a spacing error; drone_3's extra lag is (relative to the circular mean)
+    mean = (0.1 + 0.1 + 0.2) / 3
+    assert e["drone_1"]["phase_spacing_error_deg_rms"] == pytest.approx(math.degrees(mean - 0.1), abs=0.05)
+    assert e["drone_3"]["phase_spacing_error_deg_rms"] == pytest.approx(math.degrees(0.2 - mean), abs=0.05)
+
+
+def test_min_pairwise_distance():
+    pos = np.zeros((3, 4, 3))
+    pos[1, :, 0] = [10, 5, 2.5, 7]
+    pos[2, :, 1] = 20
+    assert min_pairwise_distance_m(pos) == pytest.approx(2.5)
+    assert min_pairwise_distance_m(pos[:1]) == math.inf
