@@ -58,7 +58,7 @@ class ControllerGains:
     pos_xy_p: float = 0.95
     pos_z_p: float = 1.0
     vel_xy_p: float = 1.8
-    vel_xy_i: float = 0.4
+    vel_xy_i: float = 1.0
     vel_z_p: float = 4.0
     vel_z_i: float = 2.0
     yaw_p: float = 2.8

@@ -30,3 +30,17 @@ def sim_test_config(**overrides) -> SimConfig:
             obj = getattr(obj, k)
         setattr(obj, keys[-1], value)
     return cfg
+
+
+def fast_forward(vehicle, seconds: float, dt_s: float = 0.01, wind=None, each_step=None) -> None:
+    """Step a :class:`SimVehicle` (pure, no I/O) ``seconds`` faster than real time.
+
+    ``each_step(vehicle)`` runs before every step (e.g. to keep an offboard setpoint stream alive).
+    """
+    import numpy as np
+
+    wind = np.zeros(3) if wind is None else wind
+    for _ in range(int(round(seconds / dt_s))):
+        if each_step is not None:
+            each_step(vehicle)
+        vehicle.step(vehicle.t_s + dt_s, dt_s, wind)
