@@ -14,6 +14,7 @@ import pytest
 from mcap.reader import NonSeekingReader, make_reader
 
 from onboard.flightlog import FlightLog, recover
+from onboard.recorder import Recorder
 from shared_msgs import CameraFrame, VehicleState
 
 HERE = Path(__file__).resolve().parent
@@ -99,3 +100,46 @@ def test_mcap_cli_reads_recovered_file(killed_log, tmp_path) -> None:
     subprocess.run(["mcap", "recover", str(path), "-o", str(out)], check=True, capture_output=True)
     info = subprocess.run(["mcap", "info", str(out)], check=True, capture_output=True, text=True).stdout
     assert "state" in info and "camera/image" in info
+
+
+def _mcap_js_dir() -> str | None:
+    d = os.environ.get("SKYCAP_MCAP_JS")
+    if shutil.which("node") and d and (Path(d) / "node_modules" / "@mcap" / "core").is_dir():
+        return d
+    return None
+
+
+@pytest.mark.skipif(
+    _mcap_js_dir() is None,
+    reason="optional: set SKYCAP_MCAP_JS to a folder where `npm install @mcap/core @mcap/support @mcap/nodejs` ran",
+)
+def test_official_typescript_mcap_library_reads_killed_and_recovered_files(killed_log, tmp_path) -> None:
+    """Foxglove's @mcap/core (what Foxglove Studio uses) streams the killed file up to the cut and reads the
+    recovered one with its index."""
+    import json
+
+    path, _ = killed_log
+    counts = FlightLog(path).topic_counts()
+    env = dict(os.environ, SKYCAP_MCAP_JS=_mcap_js_dir())
+
+    def js(p: Path) -> dict:
+        r = subprocess.run(["node", str(HERE / "mcap_js_check.cjs"), str(p)], capture_output=True, text=True,
+                           env=env, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)
+
+    killed = js(path)
+    assert not killed["streamDone"] and killed["stream"] == counts and killed["encodings"] == ["msgpack"]
+    out = tmp_path / "recovered.mcap"
+    recover(path, out)
+    rec = js(out)
+    assert rec["streamDone"] and rec["indexed"] == counts and rec["profile"] == "skycap"
+
+    closed = tmp_path / "closed.mcap"  # a normally closed recorder file: many small chunks, summary, footer
+    with Recorder(closed, flush_interval_s=0.05) as r:
+        for m in FlightLog(path).messages(decode_messages=False):
+            r.record(m.topic, m.data, m.log_time_ns)
+            if m.sequence % 50 == 0:
+                time.sleep(0.06)
+    assert r.stats()["flushes"] > 3
+    assert js(closed)["indexed"] == counts
