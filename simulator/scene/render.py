@@ -93,6 +93,7 @@ class Renderer:
         supersample: int = 2,
         max_person_samples: int = 60_000,
         shadows: bool = True,
+        ground_grid_px: int = 4,
     ):
         self.cam = cam
         cam_cfg = cam_cfg or CameraConfig()
@@ -112,15 +113,15 @@ class Renderer:
         self.texture = grass_texture(self.TEX_PX, self.TILE_M)
         self.tex_mean = self.texture.reshape(-1, 3).mean(0).astype(np.float32)
         self.texel_m = self.TILE_M / self.TEX_PX
-        # half-resolution ray grid (pixel centres), camera frame, z = 1
+        # coarse ray grid (centres of ground_grid_px blocks), camera frame, z = 1
         W, H = cam.width_px, cam.height_px
-        self._hw = (max(W // 2, 2), max(H // 2, 2))
-        hw, hh = self._hw
-        xs = (np.arange(hw, dtype=np.float32) + 0.5) * (W / hw)
-        ys = (np.arange(hh, dtype=np.float32) + 0.5) * (H / hh)
+        self._hw = (max(W // ground_grid_px, 2), max(H // ground_grid_px, 2))
+        gw, gh = self._hw
+        xs = (np.arange(gw, dtype=np.float64) + 0.5) * (W / gw)
+        ys = (np.arange(gh, dtype=np.float64) + 0.5) * (H / gh)
         X, Y = np.meshgrid((xs - cam.cx_px) / cam.fx_px, (ys - cam.cy_px) / cam.fy_px)
-        self._rays_half = np.stack([X, Y, np.ones_like(X)], axis=-1).reshape(-1, 3).astype(np.float32)
-        self._ground_mask = None
+        self._grid_x = X.astype(np.float32)
+        self._grid_y = Y.astype(np.float32)
 
     # ------------------------------------------------------------------ ground and sky
     MAX_DIST_M = 400.0  # ground beyond this is all haze (and keeps texture coordinates small)
@@ -128,45 +129,56 @@ class Renderer:
     def _ground(self, T_world_cam: np.ndarray) -> np.ndarray:
         """Image (H, W, 3) uint8 of the ground and sky seen from ``T_world_cam``.
 
-        The colour is ``texture * alpha + beta`` with alpha (fade to mean, fog, sky mask) and beta
-        computed on the half-resolution grid and resized; only the texture lookup is full resolution.
+        The colour is ``texture * alpha + beta``; alpha (texture weight after the fade to the mean colour,
+        the haze and the sky mask) and beta are computed on the coarse ray grid and resized; only the
+        texture lookup is at full resolution.
         """
         cam = self.cam
         W, H = cam.width_px, cam.height_px
-        hw, hh = self._hw
+        gw, gh = self._hw
         R = T_world_cam[:3, :3].astype(np.float32)
         o = T_world_cam[:3, 3].astype(np.float32)
-        d = self._rays_half @ R.T  # (N, 3) world directions
-        dz = d[:, 2]
-        dn = np.sqrt(np.einsum("ij,ij->i", d, d))
-        above = o[2] < 0
-        ground = dz > 1e-4 if above else np.zeros(len(d), bool)
-        t = np.where(ground, -o[2] / np.where(ground, dz, 1.0), 0.0).astype(np.float32)
-        t = np.minimum(t, self.MAX_DIST_M / np.maximum(dn, 1.0))
+        X, Y = self._grid_x, self._grid_y  # camera-frame ray (X, Y, 1) of each grid point
+        dx = R[0, 0] * X + R[0, 1] * Y + R[0, 2]  # world north component
+        dy = R[1, 0] * X + R[1, 1] * Y + R[1, 2]  # east
+        dz = R[2, 0] * X + R[2, 1] * Y + R[2, 2]  # down
+        dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if o[2] < 0:
+            g = (dz > 1e-4).astype(np.float32)
+            t = -o[2] / np.maximum(dz, 1e-4)
+            t = np.minimum(t, self.MAX_DIST_M / dn) * g
+        else:  # camera under the ground plane: sky only
+            g = np.zeros_like(dz)
+            t = np.zeros_like(dz)
         dist = t * dn
-        # texture pixel coordinates, offset by whole tiles near the camera to stay small for remap
+        # texture pixel coordinates, offset by whole tiles near the camera to stay small
         scale = self.TEX_PX / self.TILE_M
         off_e = math.floor(float(o[1]) / self.TILE_M) * self.TILE_M
         off_n = math.floor(float(o[0]) / self.TILE_M) * self.TILE_M
-        mx = ((o[1] - off_e) + t * d[:, 1]) * scale
-        my = ((o[0] - off_n) + t * d[:, 0]) * scale
-        maps = cv2.resize(np.dstack([mx.reshape(hh, hw), my.reshape(hh, hw)]), (W, H), interpolation=cv2.INTER_LINEAR)
+        maps_g = np.empty((gh, gw, 2), np.float32)
+        maps_g[..., 0] = ((o[1] - off_e) + t * dy) * scale
+        maps_g[..., 1] = ((o[0] - off_n) + t * dx) * scale
+        maps = cv2.resize(maps_g, (W, H), interpolation=cv2.INTER_LINEAR)
         # in-range coordinates take OpenCV's fast path (wrap only at the tile's last texel): 2-3x faster
         maps -= np.floor(maps * (1.0 / self.TEX_PX)) * self.TEX_PX
         tex = cv2.remap(self.texture, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        # blend factors on the half grid: out = tex * alpha + beta
+        # blend weights on the grid: out = tex * alpha + beta
         footprint = dist * dn / (cam.fx_px * np.maximum(dz, 1e-4))
-        fade = np.clip((footprint - 1.5 * self.texel_m) / (8.0 * self.texel_m), 0.0, 1.0)
-        fog = 1.0 - np.exp(-dist / self.FOG_M)
-        g = ground.astype(np.float32)
-        keep = (1.0 - fade) * (1.0 - fog) * g  # weight of the texture
-        up = np.sqrt(np.clip(-dz / np.maximum(dn, 1e-6), 0.0, 1.0))
-        sky = SKY_HORIZON_BGR[None] + up[:, None] * (SKY_ZENITH_BGR - SKY_HORIZON_BGR)[None]
-        beta = (g * (1.0 - fog) * fade)[:, None] * self.tex_mean[None] + (g * fog)[:, None] * (0.92 * SKY_HORIZON_BGR)[None]
-        beta += (1.0 - g)[:, None] * sky
-        alpha_u8 = cv2.resize(np.clip(keep * 255.0, 0, 255).astype(np.uint8).reshape(hh, hw), (W, H), interpolation=cv2.INTER_LINEAR)
-        beta_u8 = cv2.resize(np.clip(beta, 0, 255).astype(np.uint8).reshape(hh, hw, 3), (W, H), interpolation=cv2.INTER_LINEAR)
-        img = cv2.multiply(tex, cv2.merge([alpha_u8, alpha_u8, alpha_u8]), scale=1.0 / 255.0)
+        fade = np.clip((footprint - 1.5 * self.texel_m) * (1.0 / (8.0 * self.texel_m)), 0.0, 1.0)
+        fog = 1.0 - np.exp(dist * (-1.0 / self.FOG_M))
+        w_tex = (1.0 - fade) * (1.0 - fog) * g
+        w_mean = fade * (1.0 - fog) * g
+        w_haze = fog * g
+        up = np.sqrt(np.clip(-dz / dn, 0.0, 1.0)) * (1.0 - g)
+        beta = np.empty((gh, gw, 3), np.float32)
+        haze = 0.92 * SKY_HORIZON_BGR
+        for k in range(3):
+            sky_k = SKY_HORIZON_BGR[k] * (1.0 - g) + up * (SKY_ZENITH_BGR[k] - SKY_HORIZON_BGR[k])
+            beta[..., k] = w_mean * self.tex_mean[k] + w_haze * haze[k] + sky_k
+        alpha = np.repeat((w_tex * 255.0 + 0.5).astype(np.uint8)[..., None], 3, axis=2)
+        alpha_u8 = cv2.resize(alpha, (W, H), interpolation=cv2.INTER_LINEAR)
+        beta_u8 = cv2.resize((beta + 0.5).astype(np.uint8), (W, H), interpolation=cv2.INTER_LINEAR)
+        img = cv2.multiply(tex, alpha_u8, scale=1.0 / 255.0)
         return cv2.add(img, beta_u8)
 
     def _ground_points(self, T_world_cam: np.ndarray, x0: int, y0: int, x1: int, y1: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
