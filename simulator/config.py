@@ -144,6 +144,8 @@ class RatesConfig:
     home_position_hz: float = 0.5
     vfr_hud_hz: float = 4.0
     system_time_hz: float = 1.0
+    #: EKF origin (sent on request by default, as PX4 does on the onboard link)
+    gps_global_origin_hz: float = 0.0
 
 
 @dataclass

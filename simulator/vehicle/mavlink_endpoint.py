@@ -82,13 +82,14 @@ STREAMS = {
     "HOME_POSITION": (M.MAVLINK_MSG_ID_HOME_POSITION, "home_position_hz"),
     "VFR_HUD": (M.MAVLINK_MSG_ID_VFR_HUD, "vfr_hud_hz"),
     "SYSTEM_TIME": (M.MAVLINK_MSG_ID_SYSTEM_TIME, "system_time_hz"),
+    "GPS_GLOBAL_ORIGIN": (M.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, "gps_global_origin_hz"),
 }
 MSGID_TO_STREAM = {mid: name for name, (mid, _) in STREAMS.items()}
 #: rates of PX4's "normal" (ground-station) MAVLink instance
 GCS_RATES = RatesConfig(
     heartbeat_hz=1.0, sys_status_hz=1.0, battery_hz=0.5, extended_sys_state_hz=1.0, attitude_hz=15.0,
     attitude_quaternion_hz=0.0, local_position_hz=1.0, global_position_hz=5.0, gps_raw_hz=1.0,
-    home_position_hz=0.5, vfr_hud_hz=4.0, system_time_hz=1.0,
+    home_position_hz=0.5, vfr_hud_hz=4.0, system_time_hz=1.0, gps_global_origin_hz=0.0,
 )
 
 
@@ -268,6 +269,11 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             msg = mav.vfr_hud_encode(gs, gs, hdg, thr, alt, -vel[2])
         elif name == "SYSTEM_TIME":
             msg = mav.system_time_encode(int(time.time() * 1e6), t_ms)
+        elif name == "GPS_GLOBAL_ORIGIN":
+            if not v.gps_ok:
+                return False
+            lat, lon, alt = v.geodetic(v.local_origin_ned_m)
+            msg = mav.gps_global_origin_encode(int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), int(time.time() * 1e6))
         else:
             return False
         mav.send(msg)
@@ -410,7 +416,7 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         name = MSGID_TO_STREAM.get(msg_id)
         if name is None:
             return ap.UNSUPPORTED, None
-        if name == "HOME_POSITION" and self.vehicle.home_ned_m is None:
+        if (name == "HOME_POSITION" and self.vehicle.home_ned_m is None) or (name == "GPS_GLOBAL_ORIGIN" and not self.vehicle.gps_ok):
             return ap.TEMPORARILY_REJECTED, None
         return ap.ACCEPTED, lambda: self.send_stream(name)
 

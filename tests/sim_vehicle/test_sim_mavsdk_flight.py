@@ -15,12 +15,14 @@ import pytest
 from mavsdk.asyncio import Configuration, Mavsdk
 from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.info import InfoAsync
-from mavsdk.asyncio.plugins.offboard import OffboardAsync, OffboardError, OffboardResult, PositionNedYaw
+from mavsdk.asyncio.plugins.offboard import OffboardAsync, OffboardError, OffboardResult, PositionNedYaw, VelocityNedYaw
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryAsync
 from mavsdk.component_type import ComponentType
 
 from sim_vehicle_helpers import sim_test_config
+
+from skycap.frames import geodetic_to_ned
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -201,18 +203,35 @@ def test_mavsdk_return_to_launch(sim_world_factory):
                 return (await tel.position()).relative_altitude_m > 2.6
 
             await wait_for(up, 10.0, "takeoff")
+            # the EKF origin (local frame origin) is the spawn point, as PX4's is where it got its first fix
+            origin = await tel.get_gps_global_origin()
+            o = cfg.origin
+            np.testing.assert_allclose(
+                geodetic_to_ned(origin.latitude_deg, origin.longitude_deg, origin.altitude_m, o.lat_deg, o.lon_deg, o.alt_m),
+                [2.0, -3.0, 0.0], atol=0.02,
+            )
+            # offboard velocity setpoints
+            off = OffboardAsync(system)
+            await off.set_velocity_ned(VelocityNedYaw(0.0, 0.0, 0.0, 0.0))
+            await off.start()
+            await off.set_velocity_ned(VelocityNedYaw(0.0, 2.0, 0.0, 0.0))
+            await asyncio.sleep(2.5)
+            vel = await tel.velocity_ned()
+            assert vel.east_m_s == pytest.approx(2.0, abs=0.3) and abs(vel.north_m_s) < 0.3 and abs(vel.down_m_s) < 0.3
+            await off.stop()
             # goto a point 6 m north (DO_REPOSITION), then return
             pos = await tel.position()
             lat_north = pos.latitude_deg + math.degrees(6.0 / 6378137.0)
             await act.goto_location(lat_north, pos.longitude_deg, pos.absolute_altitude_m, 0.0)
 
             async def moved():
-                return (await tel.position_velocity_ned()).position.north_m > 5.0
+                p = (await tel.position()).latitude_deg
+                return math.radians(p - pos.latitude_deg) * 6378137.0 > 5.0
 
             await wait_for(moved, 10.0, "goto 6 m north")
             await act.return_to_launch()
             assert await wait_for(lambda: _mode_is(tel, FlightMode.RETURN_TO_LAUNCH), 2.0, "RTL mode")
-            await wait_for(lambda: _landed_state_is(tel, LandedState.ON_GROUND), 25.0, "landed at home")
+            await wait_for(lambda: _landed_state_is(tel, LandedState.ON_GROUND), 30.0, "landed at home")
             p = await tel.position()
             dn = math.radians(p.latitude_deg - home.latitude_deg) * 6378137.0
             de = math.radians(p.longitude_deg - home.longitude_deg) * 6378137.0 * math.cos(math.radians(home.latitude_deg))
