@@ -101,6 +101,7 @@ class MpcConfig:
     person_velocity_tau_s: float = 3.0
     slot_approach_speed_m_s: float = 4.0  #: speed of the reference along the circle toward the slot
     solver: Literal["osqp", "qpoases", "ipopt"] = "osqp"
+    separation: Literal["bvc", "nonconvex"] = "bvc"  #: "nonconvex": hard |p_k - q_jk| >= d_min (IPOPT only)
     max_solve_time_s: float = 0.05  #: later than this -> fallback (the result is not used)
     max_iter: int = 4000
 
@@ -113,6 +114,8 @@ class MpcConfig:
             raise MpcError(f"MpcConfig: altitude_m {self.altitude_m} outside the band [{self.min_altitude_m}, {self.max_altitude_m}]")
         if self.polygon_sides < 6 or self.polygon_sides % 2:
             raise MpcError("MpcConfig: polygon_sides must be even and >= 6")
+        if self.separation == "nonconvex" and self.solver != "ipopt":
+            raise MpcError("MpcConfig: separation='nonconvex' needs solver='ipopt' (a QP solver takes linear constraints only)")
         if self.geofence_ne_m and len(self.geofence_ne_m) < 3:
             raise MpcError("MpcConfig: a geofence needs at least 3 vertices (north_m, east_m)")
 
@@ -127,6 +130,14 @@ class SharedPlan:
     t0_ns: int
     dt_s: float
     positions_ned_m: np.ndarray
+
+    @classmethod
+    def from_state(cls, drone_id: str, t_ns: int, position_ned_m, velocity_ned_m_s, dt_s: float, horizon_steps: int) -> "SharedPlan":
+        """A constant-velocity plan from a teammate's reported state, for a teammate whose plan has not
+        arrived (yet): without any plan a teammate is not avoided at all."""
+        k = np.arange(horizon_steps + 1)[:, None] * dt_s
+        pos = np.asarray(position_ned_m, dtype=float) + k * np.asarray(velocity_ned_m_s, dtype=float)
+        return cls(drone_id, int(t_ns), dt_s, pos)
 
     def sample(self, t_ns: np.ndarray) -> np.ndarray:
         """Positions at times t_ns (M,) -> (M, 3), linear interpolation, held constant outside the plan."""
@@ -239,6 +250,8 @@ class FormationMPC:
         ref_v = ca.SX.sym("ref_v", 3, N)
         u_prev = ca.SX.sym("u_prev", nu)
         hs_n = ca.SX.sym("hs_n", 3, L * N)  # half-space normals per (row, step)
+        M = c.max_teammates if c.separation == "nonconvex" else 0
+        mates = ca.SX.sym("mates", 3, M * N)  # teammates' planned positions (nonconvex variant)
         w_list, g = [], []
         f = 0
         xk = x0
@@ -258,6 +271,8 @@ class FormationMPC:
                 g.append(cs * uk[0] + sn * uk[1])
             for j in range(L):
                 g.append(ca.dot(hs_n[:, j * N + k], xn[:3]))
+            for j in range(M):
+                g.append(ca.sumsqr(xn[:3] - mates[:, j * N + k]))
             wk = c.w_terminal if k == N - 1 else 1.0
             ep = xn[:3] - ref_p[:, k]
             ev = xn[3:] - ref_v[:, k]
@@ -267,9 +282,10 @@ class FormationMPC:
             uk_prev = uk
         w = ca.vertcat(*w_list)
         g = ca.vertcat(*g)
-        P = ca.vertcat(x0, ca.vec(ref_p), ca.vec(ref_v), u_prev, ca.vec(hs_n))
+        P = ca.vertcat(x0, ca.vec(ref_p), ca.vec(ref_v), u_prev, ca.vec(hs_n), ca.vec(mates))
         self._n_w, self._n_g, self._n_p = w.numel(), g.numel(), P.numel()
-        self._rows_per_step = 6 + 2 * sides + L
+        self._M = M
+        self._rows_per_step = 6 + 2 * sides + L + M
         prob = {"x": w, "p": P, "f": f, "g": g}
         if c.solver == "osqp":
             opts = {
@@ -300,8 +316,8 @@ class FormationMPC:
         self._lbw0, self._ubw0 = np.array(lbw), np.array(ubw)
         vpol = c.max_speed_h_m_s * math.cos(math.pi / c.polygon_sides)
         apol = c.max_accel_h_m_s2 * math.cos(math.pi / c.polygon_sides)
-        lbg_step = [0.0] * 6 + [-vpol, -apol] * sides + [-np.inf] * L
-        ubg_step = [0.0] * 6 + [vpol, apol] * sides + [np.inf] * L
+        lbg_step = [0.0] * 6 + [-vpol, -apol] * sides + [-np.inf] * (L + M)
+        ubg_step = [0.0] * 6 + [vpol, apol] * sides + [np.inf] * (L + M)
         self._lbg0 = np.tile(lbg_step, N)
         self._ubg0 = np.tile(ubg_step, N)
 
@@ -378,20 +394,30 @@ class FormationMPC:
 
         # previous plan (linearisation point), shifted to the current time
         if self._prev_plan is not None and self._prev_t_ns is not None:
-            prev = SharedPlan(self.drone_id, self._prev_t_ns, c.dt_s, self._prev_plan).sample(t_steps_ns.astype(float))
-            # anchor on the current position (the plan may have drifted from reality)
-            prev = prev + (p0 - SharedPlan(self.drone_id, self._prev_t_ns, c.dt_s, self._prev_plan).sample(np.array([float(t_ns)]))[0])
+            mine = SharedPlan(self.drone_id, self._prev_t_ns, c.dt_s, self._prev_plan)
+            # teammates' planes use exactly the plan they received from me (the same pair of plans on both
+            # sides is what makes the buffered Voronoi cells disjoint)
+            prev_shared = mine.sample(t_steps_ns.astype(float))
+            # the keep-outs linearise about the plan anchored on where I really am now
+            prev = prev_shared + (p0 - mine.sample(np.array([float(t_ns)]))[0])
         else:
             prev = p0 + v0 * t_steps_s[:, None]
+            prev_shared = prev
 
         # half-spaces n . p_k >= h_k, shape (L, N, 3) and (L, N)
         hn = np.zeros((L, N, 3))
         hh = np.full((L, N), -np.inf)
         row = 0
         min_dist = np.inf
-        for tid in sorted(teammate_plans):
+        mates_q = np.zeros((max(self._M, 0), N, 3))
+        mates_lb = np.full((max(self._M, 0), N), -np.inf)
+        for m_i, tid in enumerate(sorted(teammate_plans)):
             q = teammate_plans[tid].sample(t_steps_ns.astype(float))
-            d = prev - q
+            if self._M:
+                mates_q[m_i] = q
+                mates_lb[m_i] = c.min_separation_m**2
+                continue
+            d = prev_shared - q
             dist = np.linalg.norm(d, axis=1)
             n = np.empty_like(d)
             ok = dist > 1e-3
@@ -403,7 +429,7 @@ class FormationMPC:
                 sgn = 1.0 if self.drone_id == a else -1.0
                 n[~ok] = sgn * np.array([math.cos(ang), math.sin(ang), 0.0])
             hn[row] = n
-            hh[row] = np.einsum("ij,ij->i", n, 0.5 * (prev + q)) + 0.5 * c.min_separation_m
+            hh[row] = np.einsum("ij,ij->i", n, 0.5 * (prev_shared + q)) + 0.5 * c.min_separation_m
             row += 1
         row = c.max_teammates
         # the person keep-out (horizontal tangent plane about the previous plan)
@@ -444,13 +470,16 @@ class FormationMPC:
             ubw[i] = max(hi_d, p0[2] - v_rec[k]) if p0[2] > hi_d else hi_d
         lbg, ubg = self._lbg0.copy(), self._ubg0.copy()
         rps = self._rows_per_step
+        M = self._M
         for k in range(N):
-            lbg[k * rps + rps - L : (k + 1) * rps] = hh_eff[:, k]
+            lbg[k * rps + rps - L - M : k * rps + rps - M] = hh_eff[:, k]
+            if M:
+                lbg[k * rps + rps - M : (k + 1) * rps] = mates_lb[:, k]
         u_prev = np.zeros(3)
         if self._prev_w is not None:
             u_prev = self._prev_w[:3]
         # CasADi vec() is column-major: ref_p (3, N) -> step by step; hs_n (3, L*N) column j*N + k = row j, step k
-        P = np.concatenate([p0, v0, ref_p.reshape(-1), ref_v.reshape(-1), u_prev, hn.reshape(L * N, 3).reshape(-1)])
+        P = np.concatenate([p0, v0, ref_p.reshape(-1), ref_v.reshape(-1), u_prev, hn.reshape(L * N, 3).reshape(-1), mates_q.reshape(-1)])
         w0 = self._warm_start(p0, v0)
         args = dict(x0=w0, p=P, lbx=lbw, ubx=ubw, lbg=lbg, ubg=ubg)
         if self._prev_lam_g is not None:
@@ -463,7 +492,9 @@ class FormationMPC:
         self.solve_count += 1
         w = np.asarray(sol["x"]).reshape(-1)
         status = str(stats.get("return_status", "?"))
-        ok = bool(stats.get("success", False)) and np.all(np.isfinite(w))
+        # OSQP's "solved inaccurate" (iteration limit near the solution) is used when the constraint check
+        # below passes; everything else that is not a success falls back
+        ok = (bool(stats.get("success", False)) or status == "solved inaccurate") and bool(np.all(np.isfinite(w)))
         if ok:
             # verify hard constraints within tolerance (first-order solvers stop at eps)
             gval = np.asarray(ca.DM(sol["g"])).reshape(-1) if "g" in sol else None

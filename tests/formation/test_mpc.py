@@ -37,7 +37,7 @@ def still(_t):
 
 
 def test_reaches_slot_with_yaw_toward_person():
-    m = FormationMPC("d0")
+    m = FormationMPC("d0", MpcConfig(max_solve_time_s=1.0))
     P, V, R = fly({"d0": m}, np.array([[-3.0, 4.0, -6.0]]), np.zeros((1, 3)), still, {"d0": math.pi / 2}, 80)
     np.testing.assert_allclose(P[-1, 0], [0.0, 8.0, -8.0], atol=0.1)
     r = R[-1]["d0"]
@@ -47,7 +47,7 @@ def test_reaches_slot_with_yaw_toward_person():
 
 
 def test_three_drones_same_slot_keep_separation_and_limits():
-    cfg = MpcConfig(min_separation_m=3.0)
+    cfg = MpcConfig(min_separation_m=3.0, max_solve_time_s=1.0)
     ids = ["d0", "d1", "d2"]
     mpcs = {i: FormationMPC(i, cfg) for i in ids}
     p = np.array([[-10.0, -6.0, -8.0], [-10.0, 0.0, -8.0], [-10.0, 6.0, -8.0]])
@@ -62,9 +62,24 @@ def test_three_drones_same_slot_keep_separation_and_limits():
     assert sum(m.fallback_count for m in mpcs.values()) == 0
 
 
+def test_ipopt_nonconvex_variant_keeps_separation():
+    with pytest.raises(MpcError, match="ipopt"):
+        MpcConfig(separation="nonconvex")
+    cfg = MpcConfig(solver="ipopt", separation="nonconvex", max_teammates=2, max_solve_time_s=1.0)
+    ids = ["d0", "d1", "d2"]
+    mpcs = {i: FormationMPC(i, cfg) for i in ids}
+    p = np.array([[-10.0, -6.0, -8.0], [-10.0, 0.0, -8.0], [-10.0, 6.0, -8.0]])
+    P, V, R = fly(mpcs, p, np.zeros((3, 3)), still, {i: math.pi for i in ids}, 30)
+    assert pairwise_min(P) >= 3.0 - 0.05
+    # both sides avoid each other's old plan at the full distance: crowding makes it (locally) infeasible
+    # now and then -> brake fallbacks; the buffered-Voronoi QP has none here (test above)
+    assert sum(m.fallback_count for m in mpcs.values()) <= 9
+    assert np.linalg.norm(np.diff(V, axis=0)[:, :, :2] / 0.1, axis=2).max() <= 4.0 + 1e-2
+
+
 def test_head_on_swap_keeps_separation():
     ids = ["a", "b"]
-    mpcs = {i: FormationMPC(i) for i in ids}
+    mpcs = {i: FormationMPC(i, MpcConfig(max_solve_time_s=1.0)) for i in ids}
     p = np.array([[8.0, 0.0, -8.0], [-8.0, 0.0, -8.0]])
     # slots swapped: they must pass each other around the person
     P, V, R = fly(mpcs, p, np.zeros((2, 3)), still, {"a": math.pi, "b": 0.0}, 120)
@@ -74,7 +89,7 @@ def test_head_on_swap_keeps_separation():
 
 
 def test_speed_limit_when_far_and_person_walking():
-    m = FormationMPC("d0")
+    m = FormationMPC("d0", MpcConfig(max_solve_time_s=1.0))
 
     def walking(t):
         return PERSON + np.array([1.2 * t, 0.0, 0.0]), np.array([1.2, 0.0, 0.0])
@@ -90,7 +105,7 @@ def test_speed_limit_when_far_and_person_walking():
 
 def test_geofence_respected():
     fence = ((-20.0, -20.0), (-20.0, 20.0), (5.0, 20.0), (5.0, -20.0))  # north edge at 5 m
-    cfg = MpcConfig(geofence_ne_m=fence, geofence_margin_m=1.0)
+    cfg = MpcConfig(geofence_ne_m=fence, geofence_margin_m=1.0, max_solve_time_s=1.0)
     m = FormationMPC("d0", cfg)
     # slot straight north at 8 m: outside the fence; the drone starts on the far (south) side
     P, V, R = fly({"d0": m}, np.array([[-8.0, 0.5, -8.0]]), np.zeros((1, 3)), still, {"d0": 0.0}, 100)
@@ -101,7 +116,7 @@ def test_geofence_respected():
 
 
 def test_obstacle_avoided():
-    cfg = MpcConfig(obstacles=(Cylinder(0.0, 8.0, 1.5),), obstacle_margin_m=0.5)
+    cfg = MpcConfig(obstacles=(Cylinder(0.0, 8.0, 1.5),), obstacle_margin_m=0.5, max_solve_time_s=1.0)
     m = FormationMPC("d0", cfg)
     P, V, R = fly({"d0": m}, np.array([[0.0, 16.0, -8.0]]), np.zeros((1, 3)), still, {"d0": -math.pi / 2}, 150)
     d = np.linalg.norm(P[:, 0, :2] - [0.0, 8.0], axis=1)
@@ -111,7 +126,7 @@ def test_obstacle_avoided():
 
 def test_infeasible_falls_back_to_brake_and_counts():
     fence = ((-20.0, -20.0), (-20.0, 20.0), (10.0, 20.0), (10.0, -20.0))
-    m = FormationMPC("d0", MpcConfig(geofence_ne_m=fence, geofence_margin_m=1.0))
+    m = FormationMPC("d0", MpcConfig(geofence_ne_m=fence, geofence_margin_m=1.0, max_solve_time_s=1.0))
     # 5 m/s toward the fence 0.3 m before its margin: cannot stop in time
     r = m.step(0, np.array([8.7, 0.0, -8.0]), np.array([5.0, 0.0, 0.0]), PERSON, np.zeros(3), 0.0)
     assert r.fallback and not r.ok and m.fallback_count == 1
@@ -125,7 +140,7 @@ def test_late_solve_falls_back():
     m = FormationMPC("d0", MpcConfig(max_solve_time_s=1e-7))
     r = m.step(0, np.array([0.0, 0.0, -8.0]), np.array([0.0, 1.0, 0.0]), PERSON, np.zeros(3), 0.0)
     assert r.fallback and "late" in r.status and m.fallback_count == 1
-    m2 = FormationMPC("d0")
+    m2 = FormationMPC("d0", MpcConfig(max_solve_time_s=1.0))  # generous: the test machine is shared
     for k in range(5):
         r2 = m2.step(k * int(1e8), np.array([0.0, 0.0, -8.0]), np.zeros(3), PERSON + [8, 8, 0], np.zeros(3), 0.0)
         assert r2.ok and not r2.fallback
@@ -133,7 +148,7 @@ def test_late_solve_falls_back():
 
 
 def test_bad_input():
-    m = FormationMPC("d0")
+    m = FormationMPC("d0", MpcConfig(max_solve_time_s=1.0))
     with pytest.raises(MpcError, match="not finite"):
         m.step(0, np.array([np.nan, 0, -8]), np.zeros(3), PERSON, np.zeros(3), 0.0)
     with pytest.raises(MpcError, match="convex"):
@@ -146,3 +161,13 @@ def test_shared_plan_sampling():
     plan = SharedPlan("x", int(1e9), 0.1, np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]))
     s = plan.sample(np.array([0.5e9, 1.05e9, 1.15e9, 5e9]))
     np.testing.assert_allclose(s[:, 0], [0.0, 0.5, 1.5, 2.0])
+
+
+def test_plan_from_state_is_avoided():
+    q = SharedPlan.from_state("mate", 0, [0.0, 8.0, -8.0], [0.0, -2.0, 0.0], 0.1, 15)
+    np.testing.assert_allclose(q.positions_ned_m[-1], [0.0, 5.0, -8.0])
+    m = FormationMPC("d0", MpcConfig(max_solve_time_s=1.0))
+    # my slot is where the teammate is heading
+    r = m.step(0, np.array([0.0, 2.0, -8.0]), np.zeros(3), PERSON + [-8.0, 0, 0], np.zeros(3), math.pi / 2, {"mate": q})
+    # the bisecting plane shifted by d/2: distance >= (|a - b| + d) / 2 >= d while the old plans were >= d apart
+    assert r.ok and r.min_teammate_distance_m >= 3.0 - 1e-2
