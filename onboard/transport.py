@@ -192,6 +192,7 @@ class Subscription:
         self._transport = transport
         self._zenoh_sub: Any = None
         self._closed = False
+        self._on_close: list[Callable[[], Any]] = []
 
     def close(self) -> None:
         if self._closed:
@@ -199,10 +200,12 @@ class Subscription:
         self._closed = True
         self._transport._forget(self)
         if self._zenoh_sub is not None:
-            try:
-                self._zenoh_sub.undeclare()
-            except Exception:  # session already closed
-                pass
+            _quiet(self._zenoh_sub.undeclare)  # may fail when the session is already closed
+        self._closed_hooks()
+
+    def _closed_hooks(self) -> None:
+        for fn in self._on_close:
+            _quiet(fn)
 
     @property
     def closed(self) -> bool:
@@ -219,28 +222,60 @@ class AsyncSubscription(Generic[M]):
     counted in ``stats.dropped`` (fresh data matters more than complete data for telemetry).
     """
 
-    def __init__(self, sub: Subscription, queue: asyncio.Queue) -> None:
+    _END = object()
+
+    def __init__(self, sub: Subscription, queue: asyncio.Queue, loop: asyncio.AbstractEventLoop) -> None:
         self.subscription = sub
         self.stats = sub.stats
         self._queue = queue
+        self._loop = loop
+        self._ended = False
+        sub._on_close.append(self._end)
+
+    def _end(self) -> None:  # any thread: wake a waiting consumer with the end marker
+        deliver_to_loop(self._loop, self._put_end)()
+
+    def _put_end(self) -> None:
+        if self._queue.full():
+            try:
+                self._queue.get_nowait()
+            except asyncio.QueueEmpty:
+                pass
+        self._queue.put_nowait(self._END)
 
     def __aiter__(self) -> AsyncSubscription[M]:
         return self
 
     async def __anext__(self) -> Received[M]:
-        if self.subscription.closed and self._queue.empty():
+        """Next message; the iteration ends after :meth:`close` or :meth:`Transport.close`."""
+        if self._ended:
             raise StopAsyncIteration
-        return await self._queue.get()
+        item = await self._queue.get()
+        if item is self._END:
+            self._ended = True
+            raise StopAsyncIteration
+        return item
 
     async def get(self, timeout_s: float | None = None) -> Received[M]:
-        """Next message; ``asyncio.TimeoutError`` after ``timeout_s``."""
-        return await asyncio.wait_for(self._queue.get(), timeout_s)
+        """Next message; ``asyncio.TimeoutError`` after ``timeout_s``; :class:`TransportError` once closed."""
+        if self._ended:
+            raise TransportError(f"subscription to {self.subscription.key_expr!r} is closed")
+        item = await asyncio.wait_for(self._queue.get(), timeout_s)
+        if item is self._END:
+            self._ended = True
+            raise TransportError(f"subscription to {self.subscription.key_expr!r} is closed")
+        return item
 
     def get_nowait(self) -> Received[M] | None:
+        """A waiting message, or None."""
         try:
-            return self._queue.get_nowait()
+            item = self._queue.get_nowait()
         except asyncio.QueueEmpty:
             return None
+        if item is self._END:
+            self._ended = True
+            return None
+        return item
 
     def close(self) -> None:
         self.subscription.close()
@@ -334,7 +369,9 @@ class Transport:
             qs, self._queryables = list(self._queryables.values()), {}
         for s in subs:
             s._closed = True
-            _quiet(s._zenoh_sub.undeclare) if s._zenoh_sub is not None else None
+            if s._zenoh_sub is not None:
+                _quiet(s._zenoh_sub.undeclare)
+            s._closed_hooks()
         for obj in [*tokens, *pubs, *qs]:
             _quiet(obj.undeclare)
         _quiet(self._session.close)
@@ -502,17 +539,21 @@ class Transport:
         holder: dict[str, Subscription] = {}
 
         def put(rx: Received) -> None:  # runs on the loop
+            sub_ = holder.get("sub")  # None only for a message racing the declaration
+            if sub_ is not None and sub_.closed:
+                return
             if queue.full():
                 try:
                     queue.get_nowait()
                 except asyncio.QueueEmpty:
                     pass
-                holder["sub"].stats.dropped += 1
+                if sub_ is not None:
+                    sub_.stats.dropped += 1
             queue.put_nowait(rx)
 
         sub = self.subscribe(key_expr, deliver_to_loop(loop, put), expected_type)
         holder["sub"] = sub
-        return AsyncSubscription(sub, queue)
+        return AsyncSubscription(sub, queue, loop)
 
     # ------------------------------------------------------------------------------------- presence
     def declare_alive(self, key: str) -> Any:

@@ -110,3 +110,58 @@ def test_latched_value_is_served_to_queries(pair) -> None:
     plan.plan_id = "p2"
     a.publish(key, plan, latch=True)
     assert [r.msg.plan_id for r in b.query_latest(keys.gcs_key("f", "*"), OrbitPlan, timeout_s=2.0)] == ["p2"]
+
+
+def test_async_iteration_ends_on_close(pair) -> None:
+    a, b = pair
+    key = keys.drone_key("f", "drone_1", keys.STATE)
+
+    async def main() -> tuple[int, int]:
+        sub = b.subscribe_async(key, VehicleState, maxsize=2)
+        await asyncio.sleep(0.3)
+        for i in range(20):
+            a.publish(key, state(i))
+        await asyncio.sleep(0.5)
+        n = 0
+        while sub.get_nowait() is not None:
+            n += 1
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.2, b.close)  # closing the transport ends the iteration of a waiting consumer
+        async for _ in sub:
+            n += 1
+        with pytest.raises(TransportError, match="closed"):
+            await sub.get(1.0)
+        return n, sub.stats.dropped
+
+    n, dropped = asyncio.run(asyncio.wait_for(main(), 10))
+    assert n == 2 and dropped == 18  # bounded queue keeps the newest
+
+
+def test_rendezvous_topology_start_order_and_mesh() -> None:
+    """Peers started before the rendezvous join it when it appears, and keep talking after it exits."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    key = keys.drone_key("f", "drone_1", keys.STATE)
+    got: list[float] = []
+    p1 = Transport.open(TransportConfig.local_peer(ep), "p1")  # no rendezvous yet
+    p2 = Transport.open(TransportConfig.local_peer(ep), "p2")
+    try:
+        p2.subscribe(key, lambda rx: got.append(rx.msg.position_ned_m[0]), VehicleState)
+        rv = Transport.open(TransportConfig.rendezvous(ep), "rendezvous")
+        t_end = time.monotonic() + 15
+        i = 0
+        while not got and time.monotonic() < t_end:
+            p1.publish(key, state(i))
+            i += 1
+            time.sleep(0.1)
+        assert got, "peers did not meet through the rendezvous"
+        rv.close()
+        time.sleep(0.5)
+        n = len(got)
+        p1.publish(key, state(1000))
+        t_end = time.monotonic() + 5
+        while len(got) == n and time.monotonic() < t_end:
+            time.sleep(0.02)
+        assert got[-1] == 1000.0, "the peers are not meshed: traffic stopped with the rendezvous"
+    finally:
+        p1.close()
+        p2.close()
