@@ -266,3 +266,54 @@ def recover(src: str | Path, dst: str | Path) -> dict[str, int]:
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
         w.finish()
     return dict(sorted(counts.items()))
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def register(sub: Any) -> None:
+    """Add ``skycap log info FILE...`` and ``skycap log recover IN OUT`` to the skycap CLI."""
+    p = sub.add_parser(
+        "log",
+        help="inspect or recover flight recorder files (MCAP)",
+        description="Inspect flight recorder files (drone_<i>.mcap, truth.mcap) or rewrite one cut short by a "
+        "crash into a finalised file. Example: skycap log info flights/demo/*.mcap",
+    )
+    cmds = p.add_subparsers(dest="log_command", metavar="ACTION", required=True)
+    pi = cmds.add_parser("info", help="topics, message counts, time span, finalised or not")
+    pi.add_argument("files", nargs="+", type=Path)
+    pi.set_defaults(func=_cmd_info)
+    pr = cmds.add_parser("recover", help="rewrite a crash-truncated file as a finalised one")
+    pr.add_argument("src", type=Path)
+    pr.add_argument("dst", type=Path)
+    pr.set_defaults(func=_cmd_recover)
+
+
+def describe(path: str | Path) -> dict[str, Any]:
+    """Summary of one file: finalised, size, per-topic count, first/last log time (ns), metadata."""
+    fl = FlightLog(path)
+    counts: dict[str, int] = {}
+    t_first = t_last = None
+    for m in fl.messages(decode_messages=False):
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+        t_first = m.log_time_ns if t_first is None else min(t_first, m.log_time_ns)
+        t_last = m.log_time_ns if t_last is None else max(t_last, m.log_time_ns)
+    return {
+        "path": str(fl.path), "finalised": fl.finalised, "size_bytes": fl.size_bytes, "topics": dict(sorted(counts.items())),
+        "t_first_ns": t_first, "t_last_ns": t_last, "metadata": fl.metadata(),
+    }
+
+
+def _cmd_info(args: Any) -> int:
+    for f in args.files:
+        d = describe(f)
+        span = (d["t_last_ns"] - d["t_first_ns"]) / 1e9 if d["t_first_ns"] is not None else 0.0
+        state = "finalised" if d["finalised"] else "NOT finalised (recorder killed?) -- skycap log recover can fix it"
+        print(f"{d['path']}: {d['size_bytes'] / 1e6:.1f} MB, {span:.1f} s, {state}")
+        for topic, n in d["topics"].items():
+            print(f"  {topic:<28} {n:>8} msgs  {n / span if span > 0 else 0.0:8.1f} Hz")
+    return 0
+
+
+def _cmd_recover(args: Any) -> int:
+    counts = recover(args.src, args.dst)
+    print(f"wrote {args.dst}: {sum(counts.values())} messages on {len(counts)} topics")
+    return 0

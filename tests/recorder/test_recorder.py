@@ -132,3 +132,28 @@ def test_undecodable_message_names_file_and_topic(tmp_path) -> None:
     with pytest.raises(FlightLogError, match=r"v\.mcap.*'state'.*schema version 99"):
         FlightLog(path).read_topic("state")
     assert [m.sequence for m in FlightLog(path).messages(skip_invalid=True)] == [2]
+
+
+def test_log_cli_info_and_recover(tmp_path, capsys) -> None:
+    import argparse
+
+    from onboard import flightlog
+
+    path = tmp_path / "drone_1.mcap"
+    with Recorder(path, node_id="drone_1") as rec:
+        for i in range(1, 11):
+            rec.record("state", encode(state(i, 10**18 + i * 10**8)), log_time_ns=10**18 + i * 10**8)
+    parser = argparse.ArgumentParser()
+    flightlog.register(parser.add_subparsers())
+    args = parser.parse_args(["log", "info", str(path)])
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "finalised" in out and "state" in out and "10 msgs" in out
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) - 40])
+    args = parser.parse_args(["log", "recover", str(cut), str(tmp_path / "fixed.mcap")])
+    assert args.func(args) == 0
+    assert FlightLog(tmp_path / "fixed.mcap").finalised
+    d = flightlog.describe(tmp_path / "fixed.mcap")
+    assert d["topics"] == {"state": 10} and d["t_last_ns"] - d["t_first_ns"] == 9 * 10**8
