@@ -21,7 +21,10 @@ from simulator.scene.body import Ellipsoids, body_ellipsoids
 from simulator.scene.config import CameraConfig
 from skycap.frames import R_body_cam, invert_T, make_T
 
-__all__ = ["PinholeCamera", "camera_pose", "R_world_body_from_q", "GtProjection", "project_person", "ellipsoid_boxes"]
+__all__ = [
+    "PinholeCamera", "camera_pose", "R_world_body_from_q", "GtProjection", "project_person", "ellipsoid_boxes",
+    "joint_occlusion",
+]  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,7 +132,8 @@ class GtProjection:
     """Exact projections of the person into one camera.
 
     uv_px: (17, 2) joint pixels; depth_m: (17,) camera z; in_front: (17,) depth > 0.05 m;
-    in_image: (17,) pixel inside the image; visible: (17,) both (self-occlusion is not modelled);
+    in_image: (17,) pixel inside the image; visible: (17,) both; occluded: (17,) hidden behind another
+    body part (see :func:`joint_occlusion`; a visible joint may be occluded, detectors still guess it);
     box_px: (4,) body box (x_min, y_min, x_max, y_max) from the projected body ellipsoids, clipped to
     the image, or None when no part of the body is in front of the camera and in the image;
     box_unclipped_px: the same before clipping; truncated: the box was clipped.
@@ -143,6 +147,44 @@ class GtProjection:
     box_px: np.ndarray | None
     box_unclipped_px: np.ndarray | None
     truncated: bool
+    occluded: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.occluded is None:
+            self.occluded = np.zeros(len(self.visible), bool)
+
+
+#: Face keypoints lie on the head's surface: the head ellipsoid can hide them (the back of the head).
+_FACE = (0, 1, 2, 3, 4)
+
+
+def joint_occlusion(p_cam: np.ndarray, ell_cam: Ellipsoids, margin_m: float = 0.03, face_margin_m: float = 0.06) -> np.ndarray:
+    """(J,) True where the camera's ray to a joint (camera frame (J, 3)) enters another body part more
+    than ``margin_m`` before the joint. Parts containing the joint (its own limb segments) do not count,
+    except the head for the face keypoints (``face_margin_m``): a nose seen from behind is occluded."""
+    z = p_cam[:, 2]
+    d = p_cam / np.where(np.abs(z) < 1e-9, 1e-9, z)[:, None]  # rays with z = 1
+    G = np.swapaxes(ell_cam.M, 1, 2) @ ell_cam.M  # (E, 3, 3)
+    c = ell_cam.centers
+    Gd = np.einsum("eij,pj->pei", G, d)  # (J, E, 3)
+    a = np.einsum("pei,pi->pe", Gd, d)
+    b = np.einsum("pei,ei->pe", Gd, c)
+    cc = np.einsum("ei,eij,ej->e", c, G, c)[None, :] - 1.0
+    disc = b * b - a * cc
+    with np.errstate(invalid="ignore"):
+        s_in = (b - np.sqrt(disc)) / a
+    rel = p_cam[:, None, :] - c[None, :, :]
+    q = np.einsum("pei,eij,pej->pe", rel, G, rel)  # < 1 inside
+    contains = q <= 1.2**2
+    margin = np.full(a.shape, margin_m)
+    face = np.zeros(len(p_cam), bool)
+    face[list(_FACE)[: len(p_cam)]] = True
+    head = np.zeros(a.shape[1], bool)
+    head[0] = True  # body.PARTS[0] is the head
+    exclude = contains & ~(face[:, None] & head[None, :])
+    margin[face[:, None] & head[None, :] & contains] = face_margin_m
+    hits = (disc > 0) & ~exclude & (s_in < z[:, None] - margin) & (s_in > 0)
+    return hits.any(axis=1) & (z > 0)
 
 
 def project_person(
@@ -168,4 +210,5 @@ def project_person(
         if clipped[2] > clipped[0] and clipped[3] > clipped[1]:
             box = clipped
             truncated = bool(np.any(np.abs(clipped - box_c) > 1e-9))
-    return GtProjection(uv, z, in_front, in_img, in_img.copy(), box, box_c, truncated)
+    occluded = joint_occlusion(p_cam, ell)
+    return GtProjection(uv, z, in_front, in_img, in_img.copy(), box, box_c, truncated, occluded)

@@ -16,7 +16,7 @@ Per frame (``header.sender_id`` = the drone, ``header.t_measurement_ns`` = the t
 | ``camera_info`` | :class:`CameraInfo`, on the first frame, on a change (gimbal pitch) and every ``info_period_s`` |
 | ``camera/image`` | :class:`CameraFrame` (JPEG); ``T_world_cam`` = the camera pose from the vehicle's *estimated* pose when the truth carries one, else empty |
 | ``sim/keypoints2d`` | :class:`Keypoints2D`, ``simulated=True``, ``detector="sim_noisy_gt"`` (no person: empty list) |
-| ``sim/keypoints2d_gt`` | :class:`Keypoints2D`, ``simulated=True``, ``detector="ground_truth"``: exact projections, confidence 1 where visible, 0 else; box = GT body box |
+| ``sim/keypoints2d_gt`` | :class:`Keypoints2D`, ``simulated=True``, ``detector="ground_truth"``: exact projections, confidence 1 where visible, 0.5 where visible but hidden behind another body part, 0 outside the image or behind the camera; box = GT body box |
 | ``sim/detections`` | :class:`Detections`, ``detector="simulated"``, ``mode="simulated"`` (only with an estimated pose, which that message requires) |
 
 The ground-truth camera pose is not put in any message here: it is the vehicle truth (``SimTruth``).
@@ -162,13 +162,14 @@ class CameraNode:
 
     @staticmethod
     def gt_person(gt: GtProjection) -> PersonKeypoints | None:
-        """Exact projections as keypoints (confidence 1 visible, 0 not; invisible positions clamped to 0)."""
+        """Exact projections as keypoints (confidence 1 visible, 0.5 visible but occluded by the body, 0 not
+        visible; positions behind the camera are reported as 0)."""
         if gt.box_px is None:
             return None
         uv = np.where(gt.in_front[:, None], gt.uv_px, 0.0)
         return PersonKeypoints(
             keypoints_px=tuple(float(v) for v in uv.reshape(-1)),
-            confidence=tuple(1.0 if v else 0.0 for v in gt.visible),
+            confidence=tuple((0.5 if o else 1.0) if v else 0.0 for v, o in zip(gt.visible, gt.occluded)),
             box=_bbox_msg(gt.box_px),
         )
 

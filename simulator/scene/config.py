@@ -143,6 +143,11 @@ class SimDetectorConfig:
     outlier_box_scale: float = 1.5
     outlier_conf_min: float = 0.2
     outlier_conf_max: float = 0.6
+    #: joints hidden behind another body part (GtProjection.occluded): noise std and confidence scaled,
+    #: and missed with their own probability
+    occluded_noise_scale: float = 2.0
+    occluded_conf_scale: float = 0.5
+    occluded_miss_prob: float = 0.15
     #: probability per frame that the whole body is reported left/right swapped
     swap_prob: float = 0.03
     #: a person whose GT box is smaller than this (height, px) is not detected at all
@@ -156,10 +161,12 @@ class SimDetectorConfig:
     seed: int = 0
 
     def validate(self) -> "SimDetectorConfig":
-        for name in ("miss_prob", "outlier_prob", "swap_prob", "box_miss_prob"):
+        for name in ("miss_prob", "outlier_prob", "swap_prob", "box_miss_prob", "occluded_miss_prob"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"sim_detector.{name}={v} must be a probability in [0, 1]")
+        if self.occluded_noise_scale < 0 or not 0 <= self.occluded_conf_scale <= 1:
+            raise ConfigError("sim_detector.occluded_noise_scale must be >= 0 and occluded_conf_scale in [0, 1]")
         if self.noise_px < 0 or self.noise_frac_of_height < 0 or self.box_noise_frac < 0:
             raise ConfigError("sim_detector noise values must be >= 0")
         if self.box_false_alarm_rate < 0:

@@ -14,6 +14,9 @@ Keypoint errors, per frame, for a detected person (GT box height >= ``min_height
   [outlier_conf_min, outlier_conf_max]) or **inlier**: Gaussian noise of std
   ``sqrt(noise_px^2 + (noise_frac_of_height * box_height)^2)`` per axis, confidence
   ``clip(N(conf_mean, conf_std)) * exp(-0.5 (|error| / (2 std))^2)`` (larger errors, lower confidence);
+* joints hidden behind another body part (``GtProjection.occluded``): noise std times
+  ``occluded_noise_scale``, confidence times ``occluded_conf_scale``, miss probability
+  ``occluded_miss_prob`` instead of ``miss_prob``;
 * joints outside the image or behind the camera: confidence 0, position clamped into the image.
 
 Box detector: the GT box with Gaussian edge noise (std ``box_noise_frac * height``, reported as the
@@ -43,7 +46,8 @@ _FLIP = np.array(COCO17_FLIP)
 @dataclasses.dataclass
 class SimKeypoints:
     """One simulated detection. uv_px (17, 2), confidence (17,), and what was done (for tests and
-    analysis): swapped (whole body), missed / outlier (17,) bool, sigma_px (per-axis inlier noise std),
+    analysis): swapped (whole body), missed / outlier (17,) bool, sigma_px (per-axis inlier noise std of
+    an unoccluded joint),
     box_px (4,) the GT box used."""
 
     uv_px: np.ndarray
@@ -80,18 +84,23 @@ class SimKeypointDetector:
         sigma = float(np.hypot(cfg.noise_px, cfg.noise_frac_of_height * h_box))
         uv_true = np.asarray(gt.uv_px, dtype=float).copy()
         visible = np.asarray(gt.visible, dtype=bool).copy()
+        occluded = np.asarray(gt.occluded, dtype=bool).copy()
         swapped = bool(rng.random() < cfg.swap_prob)
         if swapped:
             uv_true = uv_true[_FLIP]
             visible = visible[_FLIP]
-        noise = rng.normal(0.0, sigma, size=(17, 2))
+            occluded = occluded[_FLIP]
+        sig_j = np.where(occluded, sigma * cfg.occluded_noise_scale, sigma)
+        noise = rng.normal(0.0, 1.0, size=(17, 2)) * sig_j[:, None]
         uv = uv_true + noise
         err = np.linalg.norm(noise, axis=1)
         conf_base = np.clip(rng.normal(cfg.conf_mean, cfg.conf_std, size=17), 0.05, 1.0)
-        conf = conf_base * np.exp(-0.5 * (err / (2.0 * max(sigma, 1e-6))) ** 2)
+        conf = conf_base * np.exp(-0.5 * (err / (2.0 * np.maximum(sig_j, 1e-6))) ** 2)
+        conf = np.where(occluded, conf * cfg.occluded_conf_scale, conf)
         u = rng.random(17)
-        missed = visible & (u < cfg.miss_prob)
-        outlier = visible & ~missed & (u < cfg.miss_prob + cfg.outlier_prob)
+        p_miss = np.where(occluded, cfg.occluded_miss_prob, cfg.miss_prob)
+        missed = visible & (u < p_miss)
+        outlier = visible & ~missed & (u < p_miss + cfg.outlier_prob)
         if outlier.any():
             c = 0.5 * (box[:2] + box[2:])
             half = 0.5 * (box[2:] - box[:2]) * cfg.outlier_box_scale

@@ -86,6 +86,7 @@ def test_messages_are_valid_and_round_trip(person):
     assert len(kp.persons) == 1 and len(kp.persons[0].keypoints_px) == 34
     gt = out[SIM_KEYPOINTS2D_GT]
     assert gt.simulated and gt.detector == "ground_truth" and gt.persons[0].box is not None
+    assert set(gt.persons[0].confidence) <= {0.0, 0.5, 1.0} and max(gt.persons[0].confidence) == 1.0
     det = out[SIM_DETECTIONS]
     assert isinstance(det, Detections) and det.detector == "simulated" and det.mode == "simulated"
 

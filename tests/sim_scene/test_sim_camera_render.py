@@ -117,6 +117,24 @@ def test_gt_projection_visibility_and_box():
     assert not gt.visible.any() and not gt.in_front.any() and gt.box_px is None
 
 
+def test_self_occlusion_depends_on_the_view():
+    person = PersonSim(PersonConfig())
+    cfg = CameraConfig()
+    cam = PinholeCamera.from_config(cfg)
+    st = person.state_at(1.0)  # standing at the first stop
+    h = st.heading_rad
+
+    def occluded_from(angle_rad):
+        pos = st.root_ned_m + 6.0 * np.array([math.cos(h + angle_rad), math.sin(h + angle_rad), 0.0])
+        pos[2] = -1.5
+        return set(np.nonzero(project_person(cam, looking_at(cfg, pos, st.root_ned_m), st.joints_ned_m).occluded)[0])
+
+    front, back, left = occluded_from(0.0), occluded_from(math.pi), occluded_from(-math.pi / 2)
+    assert not {0, 1, 2} & front and {0, 1, 2} <= back  # the face is hidden from behind only
+    assert not {5, 7, 11, 13} & front and not {5, 7, 11, 13} & back
+    assert {6, 12} <= left and not {5, 11} & left  # seen from the left, the right shoulder and hip hide
+
+
 @pytest.fixture(scope="module")
 def scene():
     person = PersonSim(PersonConfig())

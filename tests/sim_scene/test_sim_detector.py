@@ -70,6 +70,24 @@ def test_miss_outlier_swap_rates_match_config():
     assert np.median(d_flip) < 4 * o.sigma_px
 
 
+def test_occluded_joints_are_noisier_less_confident_and_missed_more():
+    cfg = SimDetectorConfig(miss_prob=0.0, outlier_prob=0.0, swap_prob=0.0, occluded_miss_prob=0.2, seed=4)
+    gt = make_gt()
+    occ = np.zeros(17, bool)
+    occ[[5, 7, 9, 11, 13, 15]] = True
+    gt.occluded = occ
+    out = run(cfg, gt, 1500)
+    err = np.array([o.uv_px - gt.uv_px for o in out])
+    missed = np.array([o.missed for o in out])
+    conf = np.array([o.confidence for o in out])
+    s = out[0].sigma_px
+    ok = ~missed
+    assert err[:, ~occ].std() == pytest.approx(s, rel=0.05)
+    assert err[:, occ][ok[:, occ]].std() == pytest.approx(2.0 * s, rel=0.05)
+    assert missed[:, occ].mean() == pytest.approx(0.2, abs=0.02) and missed[:, ~occ].mean() == 0
+    assert conf[:, occ][ok[:, occ]].mean() == pytest.approx(0.5 * conf[:, ~occ].mean(), rel=0.08)
+
+
 def test_invisible_joints_and_small_people():
     vis = np.ones(17, bool)
     vis[[9, 10, 15]] = False
