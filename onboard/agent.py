@@ -312,7 +312,11 @@ class Agent:
         alt = -pos[2] if pos is not None else 0.0
         target_alt = getattr(self, "_takeoff_alt_m", self.cfg.flight.takeoff_altitude_m)
         before = self.mission.state
-        self.mission.vehicle(T["armed"], T["in_air"], alt >= 0.9 * target_alt)
+        # take-off done: at the asked altitude, or the autopilot finished its take-off elsewhere (PX4 may
+        # use its own MIS_TAKEOFF_ALT) and holds still in the air
+        settled = (T["flight_mode"] == "HOLD" and T["landed_state"] == "in_air" and alt > 1.0
+                   and abs(T["vel"][2]) < 0.2)
+        self.mission.vehicle(T["armed"], T["in_air"], alt >= 0.9 * target_alt or settled)
         if self.mission.state != before:
             log.info("%s: %s -> %s", self.id, before.value, self.mission.state.value)
             if self.mission.state == State.LANDED:
@@ -360,7 +364,7 @@ class Agent:
             self.bus.declare_alive(keys.alive_key(cfg.fleet, self.id))
         except Exception as e:
             log.warning("%s: no liveliness token: %s", self.id, e)
-        await self.autopilot.connect(cfg.connection, cfg.connect_timeout_s, cfg.mavlink_component)
+        await self.autopilot.connect(cfg.connection, cfg.connect_timeout_s)
         await self.autopilot.start_telemetry(cfg.rates.telemetry_hz)
         self._tasks.append(asyncio.create_task(self.control_loop(), name="control"))
         self._tasks.append(asyncio.create_task(self.supervisor_loop(), name="supervisor"))

@@ -73,14 +73,14 @@ class MavsdkAutopilot:
         self.offboard_active = False
 
     # --- connection ----------------------------------------------------------------------------------
-    async def connect(self, url: str, timeout_s: float = 30.0, component: str = "companion_computer") -> None:
+    async def connect(self, url: str, timeout_s: float = 30.0) -> None:
+        """Open ``url`` (e.g. ``udpin://0.0.0.0:14540``) as a MAVLink companion computer and wait for an autopilot."""
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
         from mavsdk.asyncio.plugins.action import ActionAsync
         from mavsdk.asyncio.plugins.offboard import OffboardAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
-        ctype = ComponentType.COMPANION_COMPUTER
-        self._mavsdk = Mavsdk(Configuration.create_with_component_type(ctype))
+        self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
         try:
             await self._mavsdk.add_any_connection(url)
         except Exception as e:

@@ -22,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--record-dir", default=None, help="flight folder; the agent writes <dir>/<drone_id>.mcap")
     p.add_argument("--no-record", action="store_true", help="do not record an MCAP file")
     p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--print-config", action="store_true", help="print the resolved configuration (TOML) and exit")
     p.set_defaults(func=_run)
 
 
@@ -41,4 +42,15 @@ def _run(args: argparse.Namespace) -> int:
         "transport.connect": [args.zenoh_connect] if args.zenoh_connect else None,
     }
     cfg = config_from_args(AgentConfig, args, extra).validate()
+    if args.print_config:
+        import tomli_w
+
+        from skycap.config import config_to_dict
+
+        print(tomli_w.dumps(config_to_dict(cfg)))
+        return 0
+    if cfg.record.enabled:
+        from skycap.config import save_config
+
+        save_config(cfg, cfg.mcap_path.parent / "logs" / f"{cfg.drone_id}_config.toml")
     return asyncio.run(run_agent(cfg))

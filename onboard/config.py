@@ -95,8 +95,6 @@ class AgentConfig:
     connection: str = "udpin://0.0.0.0:14540"
     #: seconds to wait for the autopilot to appear
     connect_timeout_s: float = 30.0
-    #: MAVLink identity of this companion computer
-    mavlink_component: str = "companion_computer"
     origin: OriginConfig = field(default_factory=OriginConfig)
     rates: RatesConfig = field(default_factory=RatesConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
@@ -118,8 +116,6 @@ class AgentConfig:
             raise ConfigError(f"rates.setpoint_hz={self.rates.setpoint_hz}: PX4 offboard needs >= 2 Hz; use 10-50")
         if not 0 < self.safety.min_altitude_m < self.safety.max_altitude_m:
             raise ConfigError("safety.min_altitude_m must be > 0 and below safety.max_altitude_m")
-        if self.mavlink_component not in ("companion_computer", "onboard_computer"):
-            raise ConfigError(f"mavlink_component={self.mavlink_component!r}; use 'companion_computer'")
         return self
 
     @property

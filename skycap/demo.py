@@ -164,6 +164,11 @@ class _Procs:
         return codes
 
 
+def _look_down_deg(cfg: DemoConfig) -> float:
+    """Gimbal pitch that points the camera from the orbit at the centre (negative = down)."""
+    return -math.degrees(math.atan2(cfg.orbit.altitude_m + cfg.orbit.center_ned_m[2], cfg.orbit.radius_m))
+
+
 def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[float]]:
     c = cfg.orbit.center_ned_m
     return [[round(c[0] + cfg.orbit.radius_m * math.cos(phases[d]), 3), round(c[1] + cfg.orbit.radius_m * math.sin(phases[d]), 3)]
@@ -205,7 +210,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     try:
         # 1. simulator (+ truth); 2. cameras; 3. agents
         sim_cmd = [sys.executable, "-m", "skycap.demo", "--fleet", cfg.fleet, "--zenoh-connect",
-                   cfg.zenoh_endpoint, "--truth-hz", str(cfg.truth_hz), "--out", str(out)]
+                   cfg.zenoh_endpoint, "--truth-hz", str(cfg.truth_hz), "--out", str(out),
+                   "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
         for s in sim_set:
             sim_cmd += ["--set", s]
         procs.start("sim", sim_cmd)
@@ -326,8 +332,11 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
     ap.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447")
     ap.add_argument("--truth-hz", type=float, default=50.0)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--gimbal-pitch-deg", type=float, default=None,
+                    help="camera gimbal pitch reported in the truth (the simulator has no MAVLink gimbal yet)")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args(argv)
+    gimbal_rad = math.radians(args.gimbal_pitch_deg) if args.gimbal_pitch_deg is not None else 0.0
     setup_logging("INFO")
     cfg = load_config(SimConfig, overrides=args.set).validate()
     if args.out is not None:
@@ -349,7 +358,8 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
     def publish_truth(t_ns: int, truths) -> None:
         vehicles = [VehicleTruth(drone_id=f"drone_{v.index + 1}", position_ned_m=tuple(map(float, v.position_ned_m)),
                                  velocity_ned_m_s=tuple(map(float, v.velocity_ned_m_s)),
-                                 q_world_body=tuple(map(float, quat_wxyz_from_R(v.R_world_body))))
+                                 q_world_body=tuple(map(float, quat_wxyz_from_R(v.R_world_body))),
+                                 gimbal_pitch_rad=gimbal_rad)
                     for v in truths]
         extra = person.state_at(world.t_s).truth_fields() if person is not None else \
             dict(person_joints_ned_m=zeros, person_root_ned_m=(0.0, 0.0, 0.0))
