@@ -291,10 +291,13 @@ class SimVehicle:
             self._say(4, "Takeoff denied: disarmed")
             return TEMPORARILY_REJECTED
         home_d = self.home_ned_m[2] if self.home_ned_m is not None else self.est_position_ned_m[2]
+        target_d = home_d - float(self.params["MIS_TAKEOFF_ALT"])
         if math.isfinite(altitude_amsl_m):
-            target_d = self.cfg.origin.alt_m - altitude_amsl_m
-        else:
-            target_d = home_d - float(self.params["MIS_TAKEOFF_ALT"])
+            requested_d = self.cfg.origin.alt_m - altitude_amsl_m
+            if requested_d <= home_d - 1.0:
+                target_d = requested_d
+            else:  # e.g. 0 sent for "unset": climb to MIS_TAKEOFF_ALT instead of into the ground
+                self._say(4, f"Takeoff altitude {altitude_amsl_m:.1f} m AMSL is below home + 1 m; using MIS_TAKEOFF_ALT")
         self._takeoff_target = np.array([self.est_position_ned_m[0], self.est_position_ned_m[1], target_d])
         self._set_mode(FlightMode.TAKEOFF)
         return ACCEPTED

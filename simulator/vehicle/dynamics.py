@@ -30,17 +30,25 @@ def R_from_body_z_and_yaw(body_z: np.ndarray, yaw_rad: float) -> np.ndarray:
 
     Same construction as PX4 ``ControlMath::bodyzToAttitude``.
     """
-    y_c = np.array([-math.sin(yaw_rad), math.cos(yaw_rad), 0.0])
-    body_x = np.cross(y_c, body_z)
-    if body_z[2] < 0.0:  # upside down: keep the nose pointing the same way
-        body_x = -body_x
-    nx = np.linalg.norm(body_x)
+    zx, zy, zz = float(body_z[0]), float(body_z[1]), float(body_z[2])
+    yx, yy = -math.sin(yaw_rad), math.cos(yaw_rad)  # y_c = (yx, yy, 0)
+    # body_x = y_c x body_z (explicit: np.cross is slow on 3-vectors)
+    bx, by, bz = yy * zz, -yx * zz, yx * zy - yy * zx
+    if zz < 0.0:  # upside down: keep the nose pointing the same way
+        bx, by, bz = -bx, -by, -bz
+    nx = math.sqrt(bx * bx + by * by + bz * bz)
     if nx < 1e-9:  # body_z horizontal and along y_c (degenerate) -> pick any x
-        body_x = np.array([0.0, 0.0, 1.0])
+        bx, by, bz = 0.0, 0.0, 1.0
     else:
-        body_x = body_x / nx
-    body_y = np.cross(body_z, body_x)
-    return np.column_stack([body_x, body_y, body_z])
+        bx, by, bz = bx / nx, by / nx, bz / nx
+    # body_y = body_z x body_x
+    return np.array(
+        [
+            [bx, zy * bz - zz * by, zx],
+            [by, zz * bx - zx * bz, zy],
+            [bz, zx * by - zy * bx, zz],
+        ]
+    )
 
 
 def limit_tilt(body_z: np.ndarray, max_tilt_rad: float) -> np.ndarray:
@@ -121,7 +129,7 @@ class MultirotorDynamics:
         # attitude: first-order towards the commanded thrust direction (then re-limited, re-normalised)
         a = min(1.0, dt_s / lim.attitude_time_constant_s)
         z = s.body_z + a * (body_z_cmd - s.body_z)
-        z = limit_tilt(z / np.linalg.norm(z), lim.max_tilt_rad)
+        z = limit_tilt(z / math.sqrt(z[0] * z[0] + z[1] * z[1] + z[2] * z[2]), lim.max_tilt_rad)
         yaw_rate = float(np.clip(yaw_rate_cmd_rad_s, -lim.max_yaw_rate_rad_s, lim.max_yaw_rate_rad_s))
         if s.on_ground and not motors_on:
             yaw_rate = 0.0

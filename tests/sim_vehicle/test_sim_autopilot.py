@@ -166,3 +166,20 @@ def test_manual_modes_and_mission_are_rejected_without_rc_or_mission():
     assert v.cmd_set_mode(1, MainMode.AUTO, 4) == ap.TEMPORARILY_REJECTED  # mission
     assert v.cmd_set_mode(0, MainMode.AUTO, 3) == ap.UNSUPPORTED  # no custom-mode flag
     assert v.mode == FlightMode.HOLD
+
+
+def test_takeoff_altitude_from_param7_amsl_or_mis_takeoff_alt():
+    cfg = SimConfig()
+    cfg.estimator.pos_bias_std_xy_m = cfg.estimator.pos_bias_std_z_m = 0.0
+    v = SimVehicle(0, cfg.validate())
+    fast_forward(v, 1.2)
+    v.cmd_arm(True)
+    assert v.cmd_takeoff(cfg.origin.alt_m + 6.0) == ap.ACCEPTED
+    fast_forward(v, 7.0)
+    assert -v.truth.position_ned_m[2] == pytest.approx(6.0, abs=0.2)
+    v2 = SimVehicle(0, cfg)
+    fast_forward(v2, 1.2)
+    v2.cmd_arm(True)
+    assert v2.cmd_takeoff(0.0) == ap.ACCEPTED  # 0 m AMSL: below home -> MIS_TAKEOFF_ALT
+    fast_forward(v2, 6.0)
+    assert -v2.truth.position_ned_m[2] == pytest.approx(cfg.takeoff_alt_m, abs=0.2)

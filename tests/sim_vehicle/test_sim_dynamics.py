@@ -102,3 +102,19 @@ def test_ground_contact():
     for _ in range(int(3.0 / DT)):  # motors cut: falls and rests on the ground, not below it
         dyn.step(DT, np.array([0.0, 0.0, 1.0]), 0.0, 0.0, np.zeros(3), motors_on=False)
     assert dyn.state.on_ground and dyn.state.position_ned_m[2] == 0.0
+
+
+def test_attitude_from_thrust_axis_and_yaw_is_a_rotation_with_that_heading():
+    from scipy.spatial.transform import Rotation
+
+    from simulator.vehicle.dynamics import R_from_body_z_and_yaw
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        R = Rotation.from_euler("ZYX", [rng.uniform(-3, 3), rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6)]).as_matrix()
+        yaw = math.atan2(R[1, 0], R[0, 0])
+        R2 = R_from_body_z_and_yaw(R[:, 2], yaw)
+        np.testing.assert_allclose(R2.T @ R2, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R2) == pytest.approx(1.0)
+        np.testing.assert_allclose(R2[:, 2], R[:, 2], atol=1e-12)
+        np.testing.assert_allclose(R2, R, atol=1e-9)  # same tilt + same heading = same attitude (ZYX)
