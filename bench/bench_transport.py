@@ -7,6 +7,8 @@
    (explicit tcp/127.0.0.1 endpoints, multicast scouting off, the default peer topology); B measures
    ``t_received_ns - header.t_sent_ns`` (same clock) including decode.
 2. Throughput: A publishes as fast as it can (VehicleState, then 40 KB frames); B counts what it decodes.
+4. Crash loss: a recorder process under the per-drone load is killed with SIGKILL; the data lost is the kill
+   time minus the last log time found in the (non-finalised) file.
 3. Recorder: the per-drone load (10 Hz 40 KB JPEG-like frames, 50 Hz state, 10 Hz detections, 1 Hz health
    and camera info) recorded for a while; CPU of the whole process minus the same load generator without
    a recorder, per compression.
@@ -253,6 +255,30 @@ def bench_recorder(seconds: float) -> list[list[str]]:
     return rows
 
 
+def bench_kill(runs: int) -> list[list[str]]:
+    import signal
+
+    from onboard.flightlog import FlightLog
+
+    lost, counts = [], []
+    rng = np.random.default_rng(4)
+    for _ in range(runs):
+        with tempfile.TemporaryDirectory() as d:
+            path = Path(d) / "drone_1.mcap"
+            child = subprocess.Popen([sys.executable, __file__, "--role", "rec", "--endpoint", str(path)],
+                                     stdout=subprocess.PIPE, text=True)
+            child.stdout.readline()
+            time.sleep(2.0 + rng.uniform(0, 1.0))
+            t_kill = time.time_ns()
+            os.kill(child.pid, signal.SIGKILL)
+            child.wait()
+            msgs = list(FlightLog(path).messages(decode_messages=False))
+            lost.append((t_kill - max(m.log_time_ns for m in msgs)) / 1e9)
+            counts.append(len(msgs))
+    return [[str(runs), f"{min(lost):.2f}", f"{float(np.median(lost)):.2f}", f"{max(lost):.2f}",
+             f"{int(np.median(counts))}"]]
+
+
 def table(title: str, header: list[str], rows: list[list[str]]) -> str:
     w = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
     line = lambda cells: "| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(cells)) + " |"  # noqa: E731
@@ -261,14 +287,22 @@ def table(title: str, header: list[str], rows: list[list[str]]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--role", default="bench", choices=["bench", "sub"])
+    ap.add_argument("--role", default="bench", choices=["bench", "sub", "rec"])
     ap.add_argument("--endpoint", default="")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     if args.role == "sub":
         run_subscriber(args.endpoint)
         return
+    if args.role == "rec":
+        rec = Recorder(args.endpoint, node_id="drone_1")
+        print("recording", flush=True)
+        load_generator(rec, 3600.0, np.random.default_rng(3))
+        return
     quick = args.quick
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)  # the expected "not finalised" warnings of the kill runs
     print(f"machine: {machine()}")
     print(f"load average at start: {os.getloadavg()}")
     b = Bench()
@@ -284,6 +318,8 @@ def main() -> None:
     rec = bench_recorder(5.0 if quick else 15.0)
     print(table("flight recorder, per-drone load: 50 Hz state + 10 Hz 20-60 KB JPEG + 10 Hz detections + 1 Hz health/info",
                 ["compression", "msg/s", "in MB/s", "file MB/s", "CPU % of one core", "dropped", "fsyncs"], rec))
+    print(table("kill -9 of a recording process (default flush interval 0.5 s), data lost at the end",
+                ["runs", "lost s: min", "median", "max", "messages read back (median)"], bench_kill(3 if quick else 8)))
     print(f"\nmax RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB; "
           f"load average at end: {os.getloadavg()}")
 
