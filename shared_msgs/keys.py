@@ -21,7 +21,15 @@ messages inside carry their own per-type schema version.
 | ``skycap/v1/<fleet>/sim/truth`` | SimTruth | simulator | ground truth, simulation only |
 
 Liveliness tokens: ``skycap/v1/<fleet>/<node>/alive`` is declared by every running node; watching
-``skycap/v1/<fleet>/*/alive`` tells who is present.
+``skycap/v1/<fleet>/*/alive`` tells who is present (a token vanishes when its process closes its session
+or dies: ``Transport.declare_alive`` / ``Transport.watch_presence``).
+
+Latest values: ``gcs/plan`` (and anything published with ``Transport.publish(..., latch=True)``) is also
+served to queries (``Transport.query_latest``), so a node that starts late gets the current plan.
+
+How processes find each other (default: every process a Zenoh peer, multicast scouting off, joining the
+rendezvous peer on ``tcp/127.0.0.1:7447`` that the simulator / launcher opens): see :mod:`onboard.transport`.
+The recorder's MCAP channel of a key is :func:`onboard.recorder.channel_name`.
 """
 
 from __future__ import annotations
@@ -64,7 +72,8 @@ def all_drones_key(fleet: str, topic: str) -> str:
 
 
 def alive_key(fleet: str, node: str) -> str:
-    return node_key(fleet, node, "alive")
+    """The liveliness token key of ``node``."""
+    return node_key(fleet, node, ALIVE)
 
 
 def parse_key(key: str) -> tuple[str, str, str]:
@@ -88,3 +97,4 @@ ACK = "ack"
 CMD = "cmd"
 PLAN = "plan"
 TRUTH = "truth"
+ALIVE = "alive"
