@@ -99,7 +99,7 @@ class CameraConfig:
     #: rather than ``pitch_deg``
     pitch_from_truth: bool = True
     #: camera position in the body FRD frame (metres)
-    lever_arm_body_m: list[float] = field(default_factory=lambda: [0.1, 0.0, 0.05])
+    lever_arm_body_m: list[float] = field(default_factory=lambda: [0.1, 0.0, 0.0])
     rate_hz: float = 10.0
     jpeg_quality: int = 85
     #: CameraInfo is re-sent at this period (and on every change)

@@ -109,7 +109,10 @@ def run_from_args(args: argparse.Namespace) -> int:
     from onboard.transport import DEFAULT_RENDEZVOUS, Transport, TransportConfig
     from skycap.config import load_config
 
+    import cv2
+
     cfg = load_config(SceneConfig, getattr(args, "config", None), getattr(args, "set", [])).validate()
+    cv2.setNumThreads(1)  # one camera process per drone on a shared machine: no OpenCV thread pool contention
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -124,7 +124,8 @@ class Renderer:
         self._grid_y = Y.astype(np.float32)
 
     # ------------------------------------------------------------------ ground and sky
-    MAX_DIST_M = 400.0  # ground beyond this is all haze (and keeps texture coordinates small)
+    MAX_DIST_M = 400.0
+    MIN_CAMERA_HEIGHT_M = 0.05  # ground beyond this is all haze (and keeps texture coordinates small)
 
     def _ground(self, T_world_cam: np.ndarray) -> np.ndarray:
         """Image (H, W, 3) uint8 of the ground and sky seen from ``T_world_cam``.
@@ -137,19 +138,18 @@ class Renderer:
         W, H = cam.width_px, cam.height_px
         gw, gh = self._hw
         R = T_world_cam[:3, :3].astype(np.float32)
-        o = T_world_cam[:3, 3].astype(np.float32)
+        o = T_world_cam[:3, 3].astype(np.float32).copy()
+        # a camera at or below the ground (a landed drone whose reference point is on the ground) sees
+        # the ground from just above it, not the sky from under it
+        o[2] = min(float(o[2]), -self.MIN_CAMERA_HEIGHT_M)
         X, Y = self._grid_x, self._grid_y  # camera-frame ray (X, Y, 1) of each grid point
         dx = R[0, 0] * X + R[0, 1] * Y + R[0, 2]  # world north component
         dy = R[1, 0] * X + R[1, 1] * Y + R[1, 2]  # east
         dz = R[2, 0] * X + R[2, 1] * Y + R[2, 2]  # down
         dn = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if o[2] < 0:
-            g = (dz > 1e-4).astype(np.float32)
-            t = -o[2] / np.maximum(dz, 1e-4)
-            t = np.minimum(t, self.MAX_DIST_M / dn) * g
-        else:  # camera under the ground plane: sky only
-            g = np.zeros_like(dz)
-            t = np.zeros_like(dz)
+        g = (dz > 1e-4).astype(np.float32)
+        t = -o[2] / np.maximum(dz, 1e-4)
+        t = np.minimum(t, self.MAX_DIST_M / dn) * g
         dist = t * dn
         # texture pixel coordinates, offset by whole tiles near the camera to stay small
         scale = self.TEX_PX / self.TILE_M

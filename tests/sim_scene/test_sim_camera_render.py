@@ -185,6 +185,10 @@ def test_ground_and_sky_with_level_camera():
     assert (bottom[..., 1] > bottom[..., 0]).mean() > 0.95  # grass: green below
     # texture detail near the camera (not a flat colour)
     assert bottom[..., 1].std() > 5
+    # a landed drone (camera at ground level or a little under it) still sees ground below the horizon
+    for down in (0.0, 0.05):
+        img = Renderer(cam, cfg).render(camera_pose(cfg, [0.0, 0.0, down], q_wxyz(0.4), 0.0), None).image.astype(int)
+        assert (img[100:][..., 1] > img[100:][..., 0]).mean() > 0.95
 
 
 def test_jpeg_round_trip(scene):

@@ -101,7 +101,7 @@ def test_camera_process_renders_truth_and_publishes():
     f = frames[-1]
     img = cv2.imdecode(np.frombuffer(f.data, np.uint8), cv2.IMREAD_COLOR)
     assert img.shape == (180, 320, 3)
-    assert np.allclose(np.array(f.T_world_cam).reshape(4, 4)[:3, 3], (-7.8 + 0.1, 0.1, -4.0 + 0.05), atol=1e-6)
+    assert np.allclose(np.array(f.T_world_cam).reshape(4, 4)[:3, 3], (-7.8 + 0.1, 0.1, -4.0), atol=1e-6)
     # at 10 Hz from a 20 Hz truth: frame times are about 0.1 s apart
     dts = np.diff([fr.header.t_measurement_ns for fr in frames]) / 1e9
     assert 0.05 < np.median(dts) < 0.2
