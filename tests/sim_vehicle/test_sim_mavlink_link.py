@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
-from sim_vehicle_helpers import sim_test_config
+from sim_vehicle_helpers import free_udp_port, sim_test_config
 
 from simulator.vehicle.params import MAV_PARAM_TYPE_INT32, decode_param_value
 from simulator.vehicle.px4_modes import AutoSubMode, MainMode, decode_custom_mode
@@ -123,6 +123,23 @@ def test_px4_sitl_ports_ids_heartbeat_params_mission_unsupported(two_vehicles):
     c.send(c.mav.timesync_encode(0, 123456789))
     ts = c.wait("TIMESYNC", pred=lambda m: m.ts1 == 123456789)
     assert ts.tc1 > 0
+
+
+def test_ground_station_link_gets_every_vehicle_on_one_port(sim_world_factory):
+    cfg = sim_test_config()
+    cfg.vehicles.count = 2
+    cfg.ports.gcs_port = free_udp_port()
+    cfg.ports.gcs_local_base = 0
+    sim_world_factory(cfg)
+    gcs = RawClient(cfg.ports.gcs_port)
+    try:
+        msgs = gcs.recv(2.5)
+    finally:
+        gcs.close()
+    heartbeats = {m.get_srcSystem() for m in msgs if m.get_type() == "HEARTBEAT"}
+    assert heartbeats == {1, 2}
+    att = sum(m.get_type() == "ATTITUDE" and m.get_srcSystem() == 1 for m in msgs)
+    assert 20 <= att <= 45  # PX4's lower "normal" rates on the GCS link (15 Hz)
 
 
 def struct_int_as_float(i: int) -> float:
