@@ -167,6 +167,7 @@ class MpcResult:
     plan_yaw_rad: np.ndarray
     plan_gimbal_pitch_rad: np.ndarray
     min_teammate_distance_m: float  #: over the plan, to the teammates' plans (inf without teammates)
+    min_geofence_margin_m: float  #: over the plan, distance inside the geofence polygon (inf without one)
     reference_ned_m: np.ndarray  #: (N, 3) the slot points used
 
 
@@ -538,8 +539,18 @@ class FormationMPC:
             plan_yaw_rad=yaw,
             plan_gimbal_pitch_rad=_gimbal_pitch_rad(Pp, person_full),
             min_teammate_distance_m=min_dist,
+            min_geofence_margin_m=self.geofence_margin_m(Pp),
             reference_ned_m=ref_full[1:],
         )
+
+    def geofence_margin_m(self, positions_ned_m: np.ndarray) -> float:
+        """Smallest distance (m) of positions (K, 3) inside the geofence polygon (negative = outside; inf
+        without a fence); for the failsafe's "breach imminent" check."""
+        fn, fh = self._fence
+        if len(fh) == 0:
+            return float("inf")
+        d = np.atleast_2d(positions_ned_m)[:, :2] @ fn.T - (fh - self.cfg.geofence_margin_m)
+        return float(d.min())
 
     def _warm_start(self, p0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         """The previous solution shifted by one step (last input repeated), or a coasting guess."""

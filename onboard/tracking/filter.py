@@ -67,7 +67,7 @@ class TrackerConfig:
     position_process_var_m2_s: float = 0.05  #: small random walk on p (pose changes of the body centre)
     init_position_var_m2: float = 1e4  #: prior on p when (re-)initialising from a measurement
     init_velocity_var_m2_s2: float | None = None  #: None = velocity_sigma_m_s ** 2
-    buffer_size: int = 40
+    buffer_size: int = 40  #: must cover (largest latency) x (total detection rate of the fleet): 40 = 1.25 s at 8 x 4 Hz
     gate_probability: float = 0.999  #: chi-square (3 dof) gate; 0.999 -> d^2 < 16.27
     max_consecutive_rejections: int = 12
     reset_after_s: float = 10.0
@@ -348,16 +348,16 @@ class CooperativeFilter:
         return e.accepted
 
     def _recount(self) -> None:
-        acc = [b for b in self._buffer if b.accepted]
-        self._last_seen_ns = {}
-        for b in acc:
-            sid = b.meas[0].source_id
-            self._last_seen_ns[sid] = max(self._last_seen_ns.get(sid, b.t_ns), b.t_ns)
-        if acc:
-            self._t_last_accepted_ns = max(b.t_ns for b in acc)
+        # last accepted time per source: kept beyond the buffer (which may span less than source_window_s
+        # with many drones); entries still in the buffer are authoritative for their own times
+        for b in self._buffer:
+            if b.accepted:
+                sid = b.meas[0].source_id
+                self._last_seen_ns[sid] = max(self._last_seen_ns.get(sid, b.t_ns), b.t_ns)
+                if self._t_last_accepted_ns is None or b.t_ns > self._t_last_accepted_ns:
+                    self._t_last_accepted_ns = b.t_ns
         n_acc = sum(1 for b in self._buffer if b.accepted)
-        n_rej = len(self._buffer) - n_acc
-        self._buffer_counts = (n_acc, n_rej)
+        self._buffer_counts = (n_acc, len(self._buffer) - n_acc)
 
     # ------------------------------------------------------------------ output
     def sources(self, t_ns: int) -> list[str]:

@@ -112,6 +112,8 @@ def test_geofence_respected():
     assert P[:, 0, 0].max() <= 4.0 + 0.02
     assert P[-1, 0, 0] > 3.5  # pressed against the fence, as close to the slot as allowed
     assert np.min(np.linalg.norm(P[:, 0, :2], axis=1)) >= 4.0 - 0.05  # went around the person
+    assert abs(R[-1]["d0"].min_geofence_margin_m - (5.0 - R[-1]["d0"].plan.positions_ned_m[:, 0].max())) < 1e-9
+    assert R[-1]["d0"].min_geofence_margin_m >= 1.0 - 0.02
     assert m.fallback_count == 0
 
 

@@ -162,3 +162,14 @@ def test_process_model_decays():
     # long-horizon velocity variance tends to the stationary sigma^2
     F, Q = f._transition(100.0)
     assert abs(Q[3, 3] - 1.5**2) < 1e-6 and abs(Q[6, 6] - 2.0**2) < 0.02
+
+
+def test_sources_counted_beyond_buffer_span():
+    # 8 drones at 4 Hz: 40 entries span 1.25 s, less than the 3 s source window
+    meas = simulate(6.0, np.random.default_rng(5), n=8)
+    f = CooperativeFilter("drone_0", TrackerConfig(buffer_size=40))
+    late_src = [m for m in meas if not (m.source_id == "drone_7" and m.t_ns > 4.0e9)]
+    run(f, late_src)
+    t = late_src[-1].t_ns
+    assert f.estimate(t).num_sources == 8  # drone_7 last seen ~2 s ago: still a source
+    assert f.estimate(t + int(1.5e9)).num_sources == 7
