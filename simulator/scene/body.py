@@ -1,5 +1,5 @@
-"""The rendered body: 16 ellipsoids (head, neck, chest, pelvis, upper/lower arms, hands, thighs, shins,
-feet) built from the 17 COCO joints alone, so that anything carrying COCO-17 joints (a
+"""The rendered body: 17 ellipsoids (head, hair, neck, chest, pelvis, upper/lower arms, hands, thighs,
+shins, feet) built from the 17 COCO joints alone, so that anything carrying COCO-17 joints (a
 ``SimTruth`` message included) can be rendered.
 
 An ellipsoid is a centre ``c`` (3,) and a matrix ``M`` (3, 3) with ``|M (x - c)| <= 1`` inside;
@@ -15,17 +15,17 @@ import numpy as np
 
 #: Part names, in the order of :func:`body_ellipsoids`'s output, and their material.
 PARTS: tuple[tuple[str, str], ...] = (
-    ("head", "skin"), ("neck", "skin"), ("chest", "shirt"), ("pelvis", "trousers"),
+    ("head", "skin"), ("hair", "hair"), ("neck", "skin"), ("chest", "shirt"), ("pelvis", "trousers"),
     ("l_upperarm", "shirt"), ("r_upperarm", "shirt"), ("l_forearm", "skin"), ("r_forearm", "skin"),
     ("l_hand", "skin"), ("r_hand", "skin"),
     ("l_thigh", "trousers"), ("r_thigh", "trousers"), ("l_shin", "trousers"), ("r_shin", "trousers"),
     ("l_foot", "shoes"), ("r_foot", "shoes"),
 )  # fmt: skip
-MATERIALS = ("skin", "shirt", "trousers", "shoes")
+MATERIALS = ("skin", "shirt", "trousers", "shoes", "hair")
 PART_MATERIAL = np.array([MATERIALS.index(m) for _, m in PARTS])
 
 # Bones (COCO indices from, to, radius m) for the limb ellipsoids.
-_BONES = ((5, 7, 0.052), (6, 8, 0.052), (7, 9, 0.042), (8, 10, 0.042), (11, 13, 0.078), (12, 14, 0.078), (13, 15, 0.057), (14, 16, 0.057))
+_BONES = ((5, 7, 0.046), (6, 8, 0.046), (7, 9, 0.038), (8, 10, 0.038), (11, 13, 0.078), (12, 14, 0.078), (13, 15, 0.057), (14, 16, 0.057))
 
 
 @dataclasses.dataclass
@@ -59,7 +59,7 @@ def _perp_basis(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def body_ellipsoids(joints: np.ndarray) -> Ellipsoids:
-    """The body's 16 ellipsoids (order of :data:`PARTS`) from COCO-17 joints (17, 3) in NED metres."""
+    """The body's 17 ellipsoids (order of :data:`PARTS`) from COCO-17 joints (17, 3) in NED metres."""
     j = np.asarray(joints, dtype=float)
     up_w = np.array([0.0, 0.0, -1.0])
     sh_mid = 0.5 * (j[5] + j[6])
@@ -90,14 +90,17 @@ def body_ellipsoids(joints: np.ndarray) -> Ellipsoids:
 
     head_c = ear_mid + 0.03 * up_h + 0.025 * fwd_h
     add(head_c, (fwd_h, left_h, up_h), (0.10, 0.08, 0.12))
+    # hair: covers the back, top and sides of the head, leaves the face (front reaches 0.06 < 0.10)
+    add(head_c - 0.03 * fwd_h + 0.02 * up_h, (fwd_h, left_h, up_h), (0.09, 0.086, 0.112))
     head_base = ear_mid - 0.06 * up_h
     neck_axis = head_base - sh_mid
     nL = max(float(np.linalg.norm(neck_axis)), 1e-3)
     nu = neck_axis / nL
     nv, nw = _perp_basis(nu[None])
     add(sh_mid + 0.5 * neck_axis, (nu, nv[0], nw[0]), (0.5 * nL + 0.03, 0.055, 0.055))
-    add(hip_mid + 0.66 * L_t * up_t - 0.01 * fwd_t, (fwd_t, left_t, up_t), (0.115, 0.5 * sh_w * 0.95, 0.36 * L_t))
-    add(hip_mid + 0.17 * L_t * up_t, (fwd_t, left_t, up_t), (0.11, 0.5 * hip_w + 0.065, 0.34 * L_t))
+    # chest: from the waist to above the shoulder joints (the trapezius); pelvis: hips and belly
+    add(hip_mid + 0.70 * L_t * up_t - 0.01 * fwd_t, (fwd_t, left_t, up_t), (0.11, 0.5 * sh_w * 0.92, 0.41 * L_t))
+    add(hip_mid + 0.17 * L_t * up_t, (fwd_t, left_t, up_t), (0.10, 0.5 * hip_w + 0.055, 0.33 * L_t))
     # limbs
     a = np.array([b[0] for b in _BONES])
     b = np.array([b[1] for b in _BONES])

@@ -17,7 +17,9 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from simulator.scene.body import Ellipsoids, body_ellipsoids
+from simulator.scene.body import PARTS, Ellipsoids, body_ellipsoids
+
+PART_INDEX = {name: i for i, (name, _) in enumerate(PARTS)}
 from simulator.scene.config import CameraConfig
 from skycap.frames import R_body_cam, invert_T, make_T
 
@@ -180,7 +182,7 @@ def joint_occlusion(p_cam: np.ndarray, ell_cam: Ellipsoids, margin_m: float = 0.
     face = np.zeros(len(p_cam), bool)
     face[list(_FACE)[: len(p_cam)]] = True
     head = np.zeros(a.shape[1], bool)
-    head[0] = True  # body.PARTS[0] is the head
+    head[[PART_INDEX["head"], PART_INDEX["hair"]]] = True
     exclude = contains & ~(face[:, None] & head[None, :])
     margin[face[:, None] & head[None, :] & contains] = face_margin_m
     hits = (disc > 0) & ~exclude & (s_in < z[:, None] - margin) & (s_in > 0)

@@ -130,7 +130,7 @@ class CameraNode:
         self.frame_index = 0
         self._last_info: tuple | None = None
         self._last_info_t = -math.inf
-        self.stats = {"frames": 0, "no_truth": 0, "render_ms_sum": 0.0, "late_frames": 0}
+        self.stats = {"frames": 0, "no_truth": 0, "render_ms_sum": 0.0, "cpu_ms_sum": 0.0, "late_frames": 0}
 
     # ------------------------------------------------------------------ messages
     def camera_info(self, t_ns: int, gimbal_pitch_rad: float) -> CameraInfo:
@@ -176,6 +176,7 @@ class CameraNode:
     # ------------------------------------------------------------------ one frame
     def step(self) -> dict[str, Message] | None:
         """Render and emit one frame from the latest truth; returns {topic: message} (None: no truth yet)."""
+        cpu0 = time.process_time()
         truth = self.truth_source()
         if truth is None:
             self.stats["no_truth"] += 1
@@ -235,6 +236,7 @@ class CameraNode:
         self.frame_index += 1
         self.stats["frames"] += 1
         self.stats["render_ms_sum"] += frame.timings_ms["total_ms"]
+        self.stats["cpu_ms_sum"] += (time.process_time() - cpu0) * 1e3
         return out
 
     # ------------------------------------------------------------------ loop
@@ -258,7 +260,7 @@ class CameraNode:
             stop.wait(delay)
         frames = max(self.stats["frames"], 1)
         log.info(
-            "%s camera: %d frames, %.1f ms mean render, %d late, %d without truth",
+            "%s camera: %d frames, %.1f ms mean render (wall), %.1f ms CPU per frame, %d late, %d without truth",
             self.drone_id, self.stats["frames"], self.stats["render_ms_sum"] / frames,
-            self.stats["late_frames"], self.stats["no_truth"],
+            self.stats["cpu_ms_sum"] / frames, self.stats["late_frames"], self.stats["no_truth"],
         )  # fmt: skip

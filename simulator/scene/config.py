@@ -58,6 +58,7 @@ class PersonConfig:
     trousers_bgr: list[int] = field(default_factory=lambda: [110, 70, 40])
     skin_bgr: list[int] = field(default_factory=lambda: [120, 150, 200])
     shoes_bgr: list[int] = field(default_factory=lambda: [40, 40, 40])
+    hair_bgr: list[int] = field(default_factory=lambda: [30, 45, 70])
 
     def validate(self) -> "PersonConfig":
         if len(self.waypoints_ne_m) < 1:
@@ -74,7 +75,7 @@ class PersonConfig:
                 raise ConfigError(f"person.stops duration_s={s.duration_s} must be >= 0 (0 = the clip's length)")
         if self.blend_s < 0 or self.turn_s < 0:
             raise ConfigError("person.blend_s and person.turn_s must be >= 0")
-        for name in ("shirt_bgr", "trousers_bgr", "skin_bgr", "shoes_bgr"):
+        for name in ("shirt_bgr", "trousers_bgr", "skin_bgr", "shoes_bgr", "hair_bgr"):
             c = getattr(self, name)
             if len(c) != 3 or not all(0 <= v <= 255 for v in c):
                 raise ConfigError(f"person.{name}={c} must be three values 0..255 (blue, green, red)")

@@ -13,7 +13,7 @@ How (per frame):
   texels (a one-level mip map against aliasing) and to the horizon haze with distance. The ray
   geometry is computed on a half-resolution grid and resized (it is smooth); the texture is sampled at
   full resolution. Rays above the horizon get a sky gradient.
-* **Person.** 16 ellipsoids (:mod:`simulator.scene.body`) are ray-cast analytically in the person's
+* **Person.** 17 ellipsoids (:mod:`simulator.scene.body`) are ray-cast analytically in the person's
   exact image box only (dual-quadric outline), at 2x2 supersampling while the box is small (anti-
   aliased edges), with a per-pixel depth test between parts, true surface normals and Lambert shading
   from the sun plus sky light.
@@ -108,6 +108,7 @@ class Renderer:
             "shirt": person_cfg.shirt_bgr,
             "trousers": person_cfg.trousers_bgr,
             "shoes": person_cfg.shoes_bgr,
+            "hair": person_cfg.hair_bgr,
         }
         self.material_bgr = np.array([colors[m] for m in MATERIALS], dtype=np.float32)
         self.texture = grass_texture(self.TEX_PX, self.TILE_M)
