@@ -434,10 +434,10 @@ class FormationMPC:
             row += 1
         row = c.max_teammates
         # the person keep-out (horizontal tangent plane about the previous plan)
+        slot_dir = np.array([math.cos(slot_angle_rad), math.sin(slot_angle_rad)])
         dpn = prev[:, :2] - person_k[:, :2]
         dn = np.linalg.norm(dpn, axis=1)
-        dn = np.where(dn < 1e-3, 1.0, dn)
-        n2 = dpn / dn[:, None]
+        n2 = np.where(dn[:, None] < 1e-3, slot_dir, dpn / np.maximum(dn, 1e-3)[:, None])  # right above: leave toward the slot
         hn[row, :, :2] = n2
         hh[row] = np.einsum("ij,ij->i", n2, person_k[:, :2]) + c.person_keepout_m
         row += 1
@@ -445,8 +445,7 @@ class FormationMPC:
             cen = np.array([ob.north_m, ob.east_m])
             d2 = prev[:, :2] - cen
             dd = np.linalg.norm(d2, axis=1)
-            dd = np.where(dd < 1e-3, 1.0, dd)
-            n2 = d2 / dd[:, None]
+            n2 = np.where(dd[:, None] < 1e-3, slot_dir, d2 / np.maximum(dd, 1e-3)[:, None])
             hn[row, :, :2] = n2
             hh[row] = n2 @ cen + ob.radius_m + c.obstacle_margin_m
             row += 1
