@@ -27,7 +27,7 @@ current MCAP chunk and, every ``flush_interval_s`` (default 0.5 s), closes the c
 :func:`onboard.flightlog.read_messages` reads such a file as it is, and :func:`onboard.flightlog.recover`
 (or the Go CLI's ``mcap recover in.mcap -o out.mcap``) rewrites it into a finalised one.
 On :meth:`Recorder.close` the queue is drained and the summary (statistics, chunk and message indexes)
-and footer are written.
+and footer are written; recorders still open when the interpreter exits normally are closed then.
 
 If the queue holds more than ``max_queue_bytes`` (the disk cannot keep up), new messages are dropped and
 counted (``stats()["dropped"]``), never blocking the flight code. If the writer thread fails (disk full,
@@ -42,6 +42,7 @@ import os
 import queue
 import threading
 import time
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -122,6 +123,26 @@ class _Item:
 _STOP = object()
 
 
+_OPEN_RECORDERS: weakref.WeakSet = weakref.WeakSet()
+
+
+def _close_open_recorders() -> None:
+    """Finalise recorders still open when the interpreter exits normally (their writer thread is a daemon)."""
+    for r in list(_OPEN_RECORDERS):
+        try:
+            r.close()
+        except Exception as e:
+            log.error("closing %s at exit failed: %s", r.path, e)
+
+
+try:
+    threading._register_atexit(_close_open_recorders)  # type: ignore[attr-defined]  # before thread joins
+except (AttributeError, RuntimeError):
+    import atexit
+
+    atexit.register(_close_open_recorders)
+
+
 class Recorder:
     """Writes skycap messages to one MCAP file from a background thread; see the module docstring.
 
@@ -175,6 +196,7 @@ class Recorder:
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
         self._thread.start()
+        _OPEN_RECORDERS.add(self)
         log.info("recording %s (flush every %.2f s, %s)", self.path, self.flush_interval_s, compression)
 
     # ------------------------------------------------------------------------------------- callers

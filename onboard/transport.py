@@ -39,11 +39,13 @@ async iterator fed with ``loop.call_soon_threadsafe``) or wrap a callback with :
 from __future__ import annotations
 
 import asyncio
+import atexit
 import dataclasses
 import json
 import logging
 import socket
 import threading
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, Literal, TypeVar
@@ -313,10 +315,29 @@ class _RateLimitedLog:
         return count <= self.first or count % self.every == 0
 
 
+_OPEN_TRANSPORTS: weakref.WeakSet = weakref.WeakSet()
+
+
+def _close_open_transports() -> None:
+    """Close transports left open at interpreter exit. zenoh-python 1.x runs each callback subscriber in a
+    non-daemon Python thread ("pyo3-closure") that only ends when the subscriber is undeclared, so an
+    unclosed transport would make the interpreter wait forever at exit. ``threading._register_atexit``
+    hooks run before the interpreter joins non-daemon threads (plain ``atexit`` runs after: too late)."""
+    for t in list(_OPEN_TRANSPORTS):
+        _quiet(t.close)
+
+
+try:
+    threading._register_atexit(_close_open_transports)  # type: ignore[attr-defined]
+except (AttributeError, RuntimeError):  # other Pythons: best effort
+    atexit.register(_close_open_transports)
+
+
 class Transport:
     """A Zenoh session that publishes and subscribes skycap messages. Open with :meth:`open`.
 
-    Use as a context manager or call :meth:`close`. All methods are thread-safe.
+    Use as a context manager or call :meth:`close` (transports still open at interpreter exit are closed by
+    an ``atexit`` hook). All methods are thread-safe.
     """
 
     def __init__(self, session: zenoh.Session, config: TransportConfig, node_id: str) -> None:
@@ -353,6 +374,7 @@ class Transport:
                 f"there (a second rendezvous?): pick another port or join it via transport.connect"
             ) from None
         t = cls(session, config, node_id)
+        _OPEN_TRANSPORTS.add(t)
         log.info("%s: zenoh %s session %s open (listen=%s, connect=%s, multicast=%s)", node_id, config.mode,
                  session.zid(), config.listen, config.connect, config.multicast_scouting)
         return t

@@ -165,3 +165,26 @@ def test_rendezvous_topology_start_order_and_mesh() -> None:
     finally:
         p1.close()
         p2.close()
+
+
+@pytest.mark.timeout(60)
+def test_process_exits_without_close(tmp_path) -> None:
+    """Forgotten close(): the process still exits (zenoh callback threads would block it) and the recorder
+    file is finalised."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from onboard.flightlog import FlightLog
+
+    here = Path(__file__).resolve().parent
+    env = dict(os.environ, PYTHONPATH=str(here.parents[1]) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    mcap = tmp_path / "leaky.mcap"
+    r = subprocess.run(
+        [sys.executable, str(here / "exit_without_close.py"), f"tcp/127.0.0.1:{free_tcp_port()}", str(mcap)],
+        env=env, capture_output=True, text=True, timeout=30,
+    )
+    assert r.returncode == 0, r.stderr
+    log = FlightLog(mcap)
+    assert log.finalised and log.topic_counts() == {"health": 1}
