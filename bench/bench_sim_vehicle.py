@@ -20,7 +20,16 @@ import sys
 import time
 from pathlib import Path
 
-STREAMS = ("position_velocity_ned", "attitude_quaternion", "attitude_euler", "position", "raw_gps", "battery", "health", "landed_state")
+STREAMS = (
+    "position_velocity_ned",
+    "attitude_quaternion",
+    "attitude_euler",
+    "position",
+    "raw_gps",
+    "battery",
+    "health",
+    "landed_state",
+)
 
 
 def _machine() -> str:
@@ -77,13 +86,30 @@ async def _vehicle(i: int, port: int, seconds: float, fly: bool, counts: dict, s
 
 async def _main(args) -> None:
     ports = [args.base_port + i for i in range(args.drones)]
-    cmd = [sys.executable, "-m", "skycap.cli", "--log-level", "WARNING", "sim", "--drones", str(args.drones),
-           "--set", f"ports.offboard_base={args.base_port}", "--set", "ports.local_base=0", "--set", "ports.gcs_port=0"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "skycap.cli",
+        "--log-level",
+        "WARNING",
+        "sim",
+        "--drones",
+        str(args.drones),
+        "--set",
+        f"ports.offboard_base={args.base_port}",
+        "--set",
+        "ports.local_base=0",
+        "--set",
+        "ports.gcs_port=0",
+    ]
     sim = subprocess.Popen(cmd)
     counts: dict = {}
     started = asyncio.Event()
     try:
-        tasks = [asyncio.ensure_future(_vehicle(i, p, args.seconds, not args.no_fly, counts, started)) for i, p in enumerate(ports)]
+        tasks = [
+            asyncio.ensure_future(_vehicle(i, p, args.seconds, not args.no_fly, counts, started))
+            for i, p in enumerate(ports)
+        ]
         await asyncio.sleep(5.0)  # connect, health, take off
         sim_cpu0, own_cpu0, t0 = _cpu_s(sim.pid), _cpu_s(os.getpid()), time.monotonic()
         started.set()
@@ -99,14 +125,16 @@ async def _main(args) -> None:
         sim.wait(10)
 
     print(f"\nMachine: {_machine()}")
-    print(f"{args.drones} simulated vehicles, {'flying (takeoff + hold)' if not args.no_fly else 'on the ground'}, "
-          f"{dt:.1f} s measured; MAVSDK 4 telemetry callbacks per second:\n")
+    print(
+        f"{args.drones} simulated vehicles, {'flying (takeoff + hold)' if not args.no_fly else 'on the ground'}, "
+        f"{dt:.1f} s measured; MAVSDK 4 telemetry callbacks per second:\n"
+    )
     head = "| stream | " + " | ".join(f"vehicle {i + 1}" for i in range(args.drones)) + " |"
     print(head)
     print("|" + "---|" * (args.drones + 1))
     for s in STREAMS:
         print(f"| {s} | " + " | ".join(f"{counts.get(i, {}).get(s, 0) / dt:.1f}" for i in range(args.drones)) + " |")
-    print(f"\n| process | CPU (% of one core) |\n|---|---|")
+    print("\n| process | CPU (% of one core) |\n|---|---|")
     print(f"| simulator (`skycap sim --drones {args.drones}`) | {100 * sim_cpu:.1f} |")
     print(f"| this process ({args.drones} MAVSDK instances + Python subscribers) | {100 * own_cpu:.1f} |")
 

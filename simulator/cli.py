@@ -1,8 +1,8 @@
 """``skycap sim``: run the built-in simulator's vehicles (PX4-SITL-compatible MAVLink) until SIGINT/SIGTERM.
 
-    skycap sim --drones 3                                   # vehicles 1..3 -> udp 14540..14542, GCS 14550
-    skycap sim --drones 1 --set wind.mean_speed_m_s=5 --set battery.start_percent=20
-    skycap sim --config sim.toml --duration 60
+skycap sim --drones 3                                   # vehicles 1..3 -> udp 14540..14542, GCS 14550
+skycap sim --drones 1 --set wind.mean_speed_m_s=5 --set battery.start_percent=20
+skycap sim --config sim.toml --duration 60
 """
 
 from __future__ import annotations
@@ -26,9 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--drones", type=int, default=None, help="number of vehicles (vehicles.count)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until Ctrl-C)")
+    p.add_argument(
+        "--duration", type=float, default=None, help="stop after this many seconds (default: run until Ctrl-C)"
+    )
     p.add_argument("--out", type=Path, default=None, help="write the resolved config.toml into this folder")
-    p.add_argument("--status-every", type=float, default=10.0, help="log each vehicle's state every N seconds (0: never)")
+    p.add_argument(
+        "--status-every", type=float, default=10.0, help="log each vehicle's state every N seconds (0: never)"
+    )
     add_config_args(p)
     p.set_defaults(func=run_sim)
 
@@ -47,14 +51,22 @@ def run_sim(args: argparse.Namespace) -> int:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, lambda s=sig: (log.info("%s received, stopping", signal.Signals(s).name), stop.set()))
+            loop.add_signal_handler(
+                sig, lambda s=sig: (log.info("%s received, stopping", signal.Signals(s).name), stop.set())
+            )
         await world.run(stop, duration_s=args.duration, status_every_s=args.status_every)
 
     o = cfg.origin
     log.info(
         "origin %.6f, %.6f, %.1f m AMSL; %d vehicle(s): system ids 1..%d, offboard/API links -> %s:%d..%d%s",
-        o.lat_deg, o.lon_deg, o.alt_m, cfg.vehicles.count, cfg.vehicles.count, cfg.ports.host,
-        cfg.ports.offboard_base, cfg.ports.offboard_base + cfg.vehicles.count - 1,
+        o.lat_deg,
+        o.lon_deg,
+        o.alt_m,
+        cfg.vehicles.count,
+        cfg.vehicles.count,
+        cfg.ports.host,
+        cfg.ports.offboard_base,
+        cfg.ports.offboard_base + cfg.vehicles.count - 1,
         f", ground station -> {cfg.ports.host}:{cfg.ports.gcs_port}" if cfg.ports.gcs_port else "",
     )
     asyncio.run(main())

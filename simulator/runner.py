@@ -108,7 +108,13 @@ class SimWorld:
                     ) from e
                 (self.endpoints if name == "offboard" else self.gcs_endpoints).append(ep)
                 log.info(
-                    "vehicle %d (sysid %d) %s link: udp %d -> %s:%d", i, v.system_id, name, ep.local_port, p.host, remote_port
+                    "vehicle %d (sysid %d) %s link: udp %d -> %s:%d",
+                    i,
+                    v.system_id,
+                    name,
+                    ep.local_port,
+                    p.host,
+                    remote_port,
                 )
 
     def _close_links(self) -> None:
@@ -139,7 +145,9 @@ class SimWorld:
                         log.exception("tick hook %r failed; removed", h.fn)
                         self.remove_tick_hook(h.fn)
 
-    async def run(self, stop: asyncio.Event | None = None, duration_s: float | None = None, status_every_s: float = 0.0) -> None:
+    async def run(
+        self, stop: asyncio.Event | None = None, duration_s: float | None = None, status_every_s: float = 0.0
+    ) -> None:
         """Run in real time until ``stop`` is set or ``duration_s`` elapsed (seconds of simulation)."""
         self._stop = stop or asyncio.Event()
         self._loop = asyncio.get_running_loop()

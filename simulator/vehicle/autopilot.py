@@ -97,7 +97,7 @@ def R_from_quat_wxyz(q) -> np.ndarray:
 def default_params(cfg: SimConfig, system_id: int) -> list[Param]:
     """The PX4 parameters this simulator honours (names and units as PX4)."""
     L, F = cfg.limits, cfg.failsafe
-    R, I = MAV_PARAM_TYPE_REAL32, MAV_PARAM_TYPE_INT32
+    R, INT = MAV_PARAM_TYPE_REAL32, MAV_PARAM_TYPE_INT32
     return [
         Param("MIS_TAKEOFF_ALT", cfg.takeoff_alt_m, R),
         Param("MPC_XY_VEL_MAX", L.max_speed_xy_m_s, R),
@@ -112,13 +112,13 @@ def default_params(cfg: SimConfig, system_id: int) -> list[Param]:
         Param("MPC_LAND_SPEED", min(0.7, L.max_speed_down_m_s), R),
         Param("RTL_RETURN_ALT", cfg.rtl_return_alt_m, R),
         Param("COM_OF_LOSS_T", F.offboard_loss_timeout_s, R),
-        Param("COM_OBL_RC_ACT", OFFBOARD_LOSS_ACTIONS[F.offboard_loss_action], I),
+        Param("COM_OBL_RC_ACT", OFFBOARD_LOSS_ACTIONS[F.offboard_loss_action], INT),
         Param("COM_DISARM_LAND", F.disarm_after_land_s, R),
         Param("COM_DISARM_PRFLT", F.disarm_preflight_s, R),
         Param("BAT_CRIT_THR", cfg.battery.critical_percent / 100.0, R),
-        Param("MAV_SYS_ID", system_id, I),
-        Param("SYS_AUTOSTART", 4001, I),  # x500-class quadrotor airframe
-        Param("COM_RC_IN_MODE", 4, I),  # RC not required (offboard/API only)
+        Param("MAV_SYS_ID", system_id, INT),
+        Param("SYS_AUTOSTART", 4001, INT),  # x500-class quadrotor airframe
+        Param("COM_RC_IN_MODE", 4, INT),  # RC not required (offboard/API only)
     ]
 
 
@@ -154,7 +154,9 @@ class SimVehicle:
             ControllerLimits(),
             ControllerGains(c.pos_xy_p, c.pos_z_p, c.vel_xy_p, c.vel_xy_i, c.vel_z_p, c.vel_z_i, c.yaw_p),
         )
-        self.est_model = EstimatorErrorModel(cfg.estimator, seed=cfg.estimator.seed * 1000 + index if seed is None else seed)
+        self.est_model = EstimatorErrorModel(
+            cfg.estimator, seed=cfg.estimator.seed * 1000 + index if seed is None else seed
+        )
         self.battery = Battery(cfg.battery)
         self.params = ParamStore(default_params(cfg, self.system_id), on_change=self._on_param_change)
         self._apply_params()
@@ -297,7 +299,9 @@ class SimVehicle:
             if requested_d <= home_d - 1.0:
                 target_d = requested_d
             else:  # e.g. 0 sent for "unset": climb to MIS_TAKEOFF_ALT instead of into the ground
-                self._say(4, f"Takeoff altitude {altitude_amsl_m:.1f} m AMSL is below home + 1 m; using MIS_TAKEOFF_ALT")
+                self._say(
+                    4, f"Takeoff altitude {altitude_amsl_m:.1f} m AMSL is below home + 1 m; using MIS_TAKEOFF_ALT"
+                )
         self._takeoff_target = np.array([self.est_position_ned_m[0], self.est_position_ned_m[1], target_d])
         self._set_mode(FlightMode.TAKEOFF)
         return ACCEPTED
@@ -447,7 +451,12 @@ class SimVehicle:
             if self._has_flown and t_land >= 0 and t_s - self._landed_since_s >= t_land:
                 self._disarm("Disarmed by auto disarm on land")
                 return
-            if not self._has_flown and t_pre > 0 and t_s - self._armed_at_s >= t_pre and self.mode != FlightMode.TAKEOFF:
+            if (
+                not self._has_flown
+                and t_pre > 0
+                and t_s - self._armed_at_s >= t_pre
+                and self.mode != FlightMode.TAKEOFF
+            ):
                 self._disarm("Disarmed by auto preflight disarming")
                 return
         # offboard loss failsafe (COM_OF_LOSS_T, then COM_OBL_RC_ACT)
@@ -479,8 +488,11 @@ class SimVehicle:
                 self._set_mode(FlightMode.HOLD)
                 self._hold_target = tgt.copy()
                 return self._mode_setpoint()
-            return Setpoint(position_ned_m=tgt.copy(), yaw_rad=self._hold_yaw_or_current(),
-                            max_speed_up_m_s=float(P["MPC_TKO_SPEED"]))
+            return Setpoint(
+                position_ned_m=tgt.copy(),
+                yaw_rad=self._hold_yaw_or_current(),
+                max_speed_up_m_s=float(P["MPC_TKO_SPEED"]),
+            )
         if m == FlightMode.LAND:
             xy = self._land_xy if self._land_xy is not None else p[:2]
             return Setpoint(
@@ -494,14 +506,21 @@ class SimVehicle:
             if self._rtl_phase == "climb":
                 if p[2] <= self._rtl_alt_d + 0.3:
                     self._rtl_phase = "return"
-                return Setpoint(position_ned_m=np.array([p[0], p[1], self._rtl_alt_d]) if self._rtl_phase == "climb"
-                                else np.array([home[0], home[1], self._rtl_alt_d]), max_speed_xy_m_s=cruise,
-                                yaw_rad=self._hold_yaw_or_current())
+                return Setpoint(
+                    position_ned_m=np.array([p[0], p[1], self._rtl_alt_d])
+                    if self._rtl_phase == "climb"
+                    else np.array([home[0], home[1], self._rtl_alt_d]),
+                    max_speed_xy_m_s=cruise,
+                    yaw_rad=self._hold_yaw_or_current(),
+                )
             if self._rtl_phase == "return":
                 if math.hypot(p[0] - home[0], p[1] - home[1]) < 0.5:
                     self._rtl_phase = "land"
-                return Setpoint(position_ned_m=np.array([home[0], home[1], self._rtl_alt_d]), max_speed_xy_m_s=cruise,
-                                yaw_rad=self._hold_yaw_or_current())
+                return Setpoint(
+                    position_ned_m=np.array([home[0], home[1], self._rtl_alt_d]),
+                    max_speed_xy_m_s=cruise,
+                    yaw_rad=self._hold_yaw_or_current(),
+                )
             return Setpoint(
                 position_ned_m=np.array([home[0], home[1], np.nan]),
                 velocity_ned_m_s=np.array([np.nan, np.nan, float(P["MPC_LAND_SPEED"])]),
@@ -512,8 +531,11 @@ class SimVehicle:
             return Setpoint(velocity_ned_m_s=np.array([0.0, 0.0, 0.5]))
         if self._hold_target is None:
             self._hold_target = p.copy()
-        return Setpoint(position_ned_m=self._hold_target.copy(), yaw_rad=self._hold_yaw_or_current(),
-                        max_speed_xy_m_s=self._hold_speed_m_s)
+        return Setpoint(
+            position_ned_m=self._hold_target.copy(),
+            yaw_rad=self._hold_yaw_or_current(),
+            max_speed_xy_m_s=self._hold_speed_m_s,
+        )
 
     def _hold_yaw_or_current(self) -> float:
         if math.isnan(self._hold_yaw):

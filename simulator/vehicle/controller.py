@@ -105,9 +105,17 @@ class PositionController:
             self.reset(velocity_ned_m_s)
             return z / np.linalg.norm(z), float(np.clip(sp.thrust_m_s2, 0.0, lim.max_thrust_m_s2)), yaw_rate
 
-        vmax_xy = lim.max_speed_xy_m_s if math.isnan(sp.max_speed_xy_m_s) else min(sp.max_speed_xy_m_s, lim.max_speed_xy_m_s)
-        vmax_up = lim.max_speed_up_m_s if math.isnan(sp.max_speed_up_m_s) else min(sp.max_speed_up_m_s, lim.max_speed_up_m_s)
-        vmax_dn = lim.max_speed_down_m_s if math.isnan(sp.max_speed_down_m_s) else min(sp.max_speed_down_m_s, lim.max_speed_down_m_s)
+        vmax_xy = (
+            lim.max_speed_xy_m_s if math.isnan(sp.max_speed_xy_m_s) else min(sp.max_speed_xy_m_s, lim.max_speed_xy_m_s)
+        )
+        vmax_up = (
+            lim.max_speed_up_m_s if math.isnan(sp.max_speed_up_m_s) else min(sp.max_speed_up_m_s, lim.max_speed_up_m_s)
+        )
+        vmax_dn = (
+            lim.max_speed_down_m_s
+            if math.isnan(sp.max_speed_down_m_s)
+            else min(sp.max_speed_down_m_s, lim.max_speed_down_m_s)
+        )
 
         # --- velocity setpoint from position error (+ velocity feed-forward) ---
         v_des = np.zeros(3)

@@ -97,7 +97,9 @@ class MultirotorDynamics:
     def __init__(self, limits: DynamicsLimits, position_ned_m, yaw_rad: float = 0.0, ground_down_m: float = 0.0):
         self.limits = limits
         self.ground_down_m = float(ground_down_m)
-        self.state = RigidBodyState(position_ned_m=np.asarray(position_ned_m, dtype=float).copy(), yaw_rad=float(yaw_rad))
+        self.state = RigidBodyState(
+            position_ned_m=np.asarray(position_ned_m, dtype=float).copy(), yaw_rad=float(yaw_rad)
+        )
         self.state.R_world_body = R_from_body_z_and_yaw(self.state.body_z, self.state.yaw_rad)
 
     def step(
@@ -144,7 +146,9 @@ class MultirotorDynamics:
         b = min(1.0, dt_s / lim.thrust_time_constant_s)
         thrust = s.thrust_m_s2 + b * (thrust_cmd - s.thrust_m_s2)
         # translational dynamics (semi-implicit Euler)
-        accel = -thrust * z + G_NED + lim.drag_per_mass_1_s * (np.asarray(wind_ned_m_s, dtype=float) - s.velocity_ned_m_s)
+        accel = (
+            -thrust * z + G_NED + lim.drag_per_mass_1_s * (np.asarray(wind_ned_m_s, dtype=float) - s.velocity_ned_m_s)
+        )
         vel = s.velocity_ned_m_s + accel * dt_s
         pos = s.position_ned_m + vel * dt_s
         on_ground = False

@@ -36,7 +36,9 @@ class WindModel:
     def step(self, dt_s: float) -> np.ndarray:
         if self.cfg.gust_std_m_s > 0:
             sigma = np.array([1.0, 1.0, 0.3]) * self.cfg.gust_std_m_s
-            self.gust_ned_m_s = gauss_markov_step(self.gust_ned_m_s, dt_s, self.cfg.gust_time_constant_s, sigma, self.rng)
+            self.gust_ned_m_s = gauss_markov_step(
+                self.gust_ned_m_s, dt_s, self.cfg.gust_time_constant_s, sigma, self.rng
+            )
         return self.wind_ned_m_s
 
     @property
@@ -78,9 +80,13 @@ class EstimatorErrorModel:
     def step(self, dt_s: float) -> None:
         c = self.cfg
         if c.pos_bias_time_constant_s > 0:
-            self.pos_bias_m = gauss_markov_step(self.pos_bias_m, dt_s, c.pos_bias_time_constant_s, self.pos_sigma, self.rng)
+            self.pos_bias_m = gauss_markov_step(
+                self.pos_bias_m, dt_s, c.pos_bias_time_constant_s, self.pos_sigma, self.rng
+            )
         if c.att_noise_time_constant_s > 0:
-            self.att_err_rad = gauss_markov_step(self.att_err_rad, dt_s, c.att_noise_time_constant_s, self.att_sigma_rad, self.rng)
+            self.att_err_rad = gauss_markov_step(
+                self.att_err_rad, dt_s, c.att_noise_time_constant_s, self.att_sigma_rad, self.rng
+            )
         noise = self.rng.standard_normal(6)
         self.pos_noise_m = c.pos_noise_std_m * noise[:3]
         self.vel_noise_m_s = c.vel_noise_std_m_s * noise[3:]

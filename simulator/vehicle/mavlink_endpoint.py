@@ -26,7 +26,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from simulator.config import RatesConfig
 from simulator.vehicle import autopilot as ap
-from simulator.vehicle.autopilot import SimVehicle, euler_from_R, quat_wxyz_from_R, R_from_quat_wxyz, yaw_from_R
+from simulator.vehicle.autopilot import R_from_quat_wxyz, SimVehicle, euler_from_R, quat_wxyz_from_R, yaw_from_R
 from simulator.vehicle.controller import Setpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2
 from simulator.vehicle.params import decode_param_value, encode_param_value
@@ -87,9 +87,19 @@ STREAMS = {
 MSGID_TO_STREAM = {mid: name for name, (mid, _) in STREAMS.items()}
 #: rates of PX4's "normal" (ground-station) MAVLink instance
 GCS_RATES = RatesConfig(
-    heartbeat_hz=1.0, sys_status_hz=1.0, battery_hz=0.5, extended_sys_state_hz=1.0, attitude_hz=15.0,
-    attitude_quaternion_hz=0.0, local_position_hz=1.0, global_position_hz=5.0, gps_raw_hz=1.0,
-    home_position_hz=0.5, vfr_hud_hz=4.0, system_time_hz=1.0, gps_global_origin_hz=0.0,
+    heartbeat_hz=1.0,
+    sys_status_hz=1.0,
+    battery_hz=0.5,
+    extended_sys_state_hz=1.0,
+    attitude_hz=15.0,
+    attitude_quaternion_hz=0.0,
+    local_position_hz=1.0,
+    global_position_hz=5.0,
+    gps_raw_hz=1.0,
+    home_position_hz=0.5,
+    vfr_hud_hz=4.0,
+    system_time_hz=1.0,
+    gps_global_origin_hz=0.0,
 )
 
 
@@ -192,8 +202,12 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         if name == "HEARTBEAT":
             status = M.MAV_STATE_ACTIVE if v.armed else M.MAV_STATE_STANDBY
             msg = mav.heartbeat_encode(
-                M.MAV_TYPE_QUADROTOR, M.MAV_AUTOPILOT_PX4, heartbeat_base_mode(v.mode, v.armed),
-                encode_custom_mode(v.mode.main_mode, v.mode.sub_mode), status, 3,
+                M.MAV_TYPE_QUADROTOR,
+                M.MAV_AUTOPILOT_PX4,
+                heartbeat_base_mode(v.mode, v.armed),
+                encode_custom_mode(v.mode.main_mode, v.mode.sub_mode),
+                status,
+                3,
             )
         elif name == "SYS_STATUS":
             health = SENSORS_PRESENT
@@ -203,15 +217,33 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
                 health &= ~M.MAV_SYS_STATUS_PREARM_CHECK
             b = v.battery
             msg = mav.sys_status_encode(
-                SENSORS_PRESENT, SENSORS_PRESENT, health, 250, int(b.voltage_v * 1000), int(b.current_a * 100),
-                int(round(b.remaining_pct)), 0, 0, 0, 0, 0, 0,
+                SENSORS_PRESENT,
+                SENSORS_PRESENT,
+                health,
+                250,
+                int(b.voltage_v * 1000),
+                int(b.current_a * 100),
+                int(round(b.remaining_pct)),
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
             )
         elif name == "BATTERY_STATUS":
             b = v.battery
             cells = [int(b.voltage_v / b.cfg.cells * 1000)] * b.cfg.cells + [65535] * (10 - b.cfg.cells)
             msg = mav.battery_status_encode(
-                0, M.MAV_BATTERY_FUNCTION_ALL, M.MAV_BATTERY_TYPE_LIPO, 32767, cells, int(b.current_a * 100),
-                int(b.consumed_mah), -1, int(round(b.remaining_pct)),
+                0,
+                M.MAV_BATTERY_FUNCTION_ALL,
+                M.MAV_BATTERY_TYPE_LIPO,
+                32767,
+                cells,
+                int(b.current_a * 100),
+                int(b.consumed_mah),
+                -1,
+                int(round(b.remaining_pct)),
             )
         elif name == "EXTENDED_SYS_STATE":
             msg = mav.extended_sys_state_encode(M.MAV_VTOL_STATE_UNDEFINED, v.landed_state)
@@ -232,9 +264,15 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             vel = v.est_velocity_ned_m_s
             hdg = int(round(math.degrees(v.est_yaw_rad) * 100)) % 36000
             msg = mav.global_position_int_encode(
-                t_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+                t_ms,
+                int(round(lat * 1e7)),
+                int(round(lon * 1e7)),
+                int(round(alt * 1000)),
                 int(round((home_d - v.est_position_ned_m[2]) * 1000)),
-                int(round(vel[0] * 100)), int(round(vel[1] * 100)), int(round(vel[2] * 100)), hdg,
+                int(round(vel[0] * 100)),
+                int(round(vel[1] * 100)),
+                int(round(vel[2] * 100)),
+                hdg,
             )
         elif name == "GPS_RAW_INT":
             vel = v.est_velocity_ned_m_s
@@ -247,9 +285,22 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             gs = math.hypot(vel[0], vel[1])
             cog = int(round(math.degrees(math.atan2(vel[1], vel[0])) * 100)) % 36000 if gs > 0.2 else 65535
             msg = mav.gps_raw_int_encode(
-                int(time.time() * 1e6), fix, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
-                eph, eph + 30, int(gs * 100), cog, sats, int(round(alt * 1000)), 500 if v.gps_ok else 99000,
-                800 if v.gps_ok else 99000, 150, 0, 0,
+                int(time.time() * 1e6),
+                fix,
+                int(round(lat * 1e7)),
+                int(round(lon * 1e7)),
+                int(round(alt * 1000)),
+                eph,
+                eph + 30,
+                int(gs * 100),
+                cog,
+                sats,
+                int(round(alt * 1000)),
+                500 if v.gps_ok else 99000,
+                800 if v.gps_ok else 99000,
+                150,
+                0,
+                0,
             )
         elif name == "HOME_POSITION":
             if v.home_ned_m is None:
@@ -257,8 +308,17 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             lat, lon, alt = v.geodetic(v.home_ned_m)
             hl = v.home_ned_m - v.local_origin_ned_m
             msg = mav.home_position_encode(
-                int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), hl[0], hl[1], hl[2],
-                [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(time.time() * 1e6),
+                int(round(lat * 1e7)),
+                int(round(lon * 1e7)),
+                int(round(alt * 1000)),
+                hl[0],
+                hl[1],
+                hl[2],
+                [1.0, 0.0, 0.0, 0.0],
+                0.0,
+                0.0,
+                0.0,
+                int(time.time() * 1e6),
             )
         elif name == "VFR_HUD":
             vel = v.est_velocity_ned_m_s
@@ -273,7 +333,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             if not v.gps_ok:
                 return False
             lat, lon, alt = v.geodetic(v.local_origin_ned_m)
-            msg = mav.gps_global_origin_encode(int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), int(time.time() * 1e6))
+            msg = mav.gps_global_origin_encode(
+                int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), int(time.time() * 1e6)
+            )
         else:
             return False
         mav.send(msg)
@@ -338,7 +400,11 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             else:
                 res = ap.ACCEPTED
                 period = self.period_s[name]
-                after = lambda: self.mav.send(self.mav.message_interval_encode(int(p[0]), -1 if period == math.inf else int(period * 1e6)))
+                interval_us = -1 if period == math.inf else int(period * 1e6)
+                reply = self.mav.message_interval_encode(int(p[0]), interval_us)
+
+                def after():
+                    self.mav.send(reply)
         elif cmd == M.MAV_CMD_REQUEST_MESSAGE:
             res, after = self._request_message(int(p[0]))
         elif cmd == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
@@ -366,7 +432,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         elif frame in (M.MAV_FRAME_GLOBAL_TERRAIN_ALT, M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT):
             alt_m = o.alt_m - v.dyn.ground_down_m + alt_m  # flat ground
         if math.isfinite(lat_deg) and math.isfinite(lon_deg):
-            ned = geodetic_to_ned(lat_deg, lon_deg, alt_m if math.isfinite(alt_m) else o.alt_m, o.lat_deg, o.lon_deg, o.alt_m)
+            ned = geodetic_to_ned(
+                lat_deg, lon_deg, alt_m if math.isfinite(alt_m) else o.alt_m, o.lat_deg, o.lon_deg, o.alt_m
+            )
         else:
             ned = np.array([math.nan, math.nan, o.alt_m - alt_m if math.isfinite(alt_m) else math.nan])
         if not math.isfinite(alt_m):
@@ -416,7 +484,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         name = MSGID_TO_STREAM.get(msg_id)
         if name is None:
             return ap.UNSUPPORTED, None
-        if (name == "HOME_POSITION" and self.vehicle.home_ned_m is None) or (name == "GPS_GLOBAL_ORIGIN" and not self.vehicle.gps_ok):
+        if (name == "HOME_POSITION" and self.vehicle.home_ned_m is None) or (
+            name == "GPS_GLOBAL_ORIGIN" and not self.vehicle.gps_ok
+        ):
             return ap.TEMPORARILY_REJECTED, None
         return ap.ACCEPTED, lambda: self.send_stream(name)
 
@@ -424,7 +494,17 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         sid = self.vehicle.system_id
         self.mav.send(
             self.mav.autopilot_version_encode(
-                CAPABILITIES, PX4_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x0011, 0x534B590000000000 + sid,
+                CAPABILITIES,
+                PX4_VERSION,
+                0,
+                0,
+                0,
+                [0] * 8,
+                [0] * 8,
+                [0] * 8,
+                0x26AC,
+                0x0011,
+                0x534B590000000000 + sid,
             )
         )
 
@@ -459,7 +539,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
                 pos = v.est_local_position_ned_m + np.nan_to_num(pos, nan=0.0)
         elif frame not in (M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_LOCAL_FRD):
             return
-        v.set_offboard_setpoint(Setpoint(position_ned_m=pos, velocity_ned_m_s=vel, accel_ned_m_s2=acc, yaw_rad=yaw, yaw_rate_rad_s=yaw_rate))
+        v.set_offboard_setpoint(
+            Setpoint(position_ned_m=pos, velocity_ned_m_s=vel, accel_ned_m_s2=acc, yaw_rad=yaw, yaw_rate_rad_s=yaw_rate)
+        )
 
     def _on_SET_POSITION_TARGET_GLOBAL_INT(self, msg) -> None:
         v, mask = self.vehicle, msg.type_mask
@@ -474,7 +556,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         yaw = math.nan if mask & (1 << 10) else msg.yaw
         yaw_rate = math.nan if mask & (1 << 11) else msg.yaw_rate
         v.set_offboard_setpoint(
-            Setpoint(position_ned_m=world - v.local_origin_ned_m, velocity_ned_m_s=vel, yaw_rad=yaw, yaw_rate_rad_s=yaw_rate)
+            Setpoint(
+                position_ned_m=world - v.local_origin_ned_m, velocity_ned_m_s=vel, yaw_rad=yaw, yaw_rate_rad_s=yaw_rate
+            )
         )
 
     def _on_SET_ATTITUDE_TARGET(self, msg) -> None:
@@ -494,7 +578,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
 
     def _send_param(self, p, index: int) -> None:
         self.mav.send(
-            self.mav.param_value_encode(p.name.encode(), encode_param_value(p.value, p.type), p.type, len(self.vehicle.params), index)
+            self.mav.param_value_encode(
+                p.name.encode(), encode_param_value(p.value, p.type), p.type, len(self.vehicle.params), index
+            )
         )
 
     def _on_PARAM_REQUEST_LIST(self, msg) -> None:
@@ -528,10 +614,18 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         self.mav.send(self.mav.mission_count_encode(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type))
 
     def _on_MISSION_CLEAR_ALL(self, msg) -> None:
-        self.mav.send(self.mav.mission_ack_encode(msg.get_srcSystem(), msg.get_srcComponent(), M.MAV_MISSION_ACCEPTED, msg.mission_type))
+        self.mav.send(
+            self.mav.mission_ack_encode(
+                msg.get_srcSystem(), msg.get_srcComponent(), M.MAV_MISSION_ACCEPTED, msg.mission_type
+            )
+        )
 
     def _on_MISSION_COUNT(self, msg) -> None:
-        self.mav.send(self.mav.mission_ack_encode(msg.get_srcSystem(), msg.get_srcComponent(), M.MAV_MISSION_UNSUPPORTED, msg.mission_type))
+        self.mav.send(
+            self.mav.mission_ack_encode(
+                msg.get_srcSystem(), msg.get_srcComponent(), M.MAV_MISSION_UNSUPPORTED, msg.mission_type
+            )
+        )
 
     def _on_PING(self, msg) -> None:
         if msg.target_system == 0:  # a ping request: answer it (PX4 does)

@@ -156,7 +156,11 @@ def test_params_change_the_flight_envelope():
     fast_forward(v, 0.2, each_step=stream([40.0, 0.0, -3.0]))
     v.cmd_set_mode(1, MainMode.OFFBOARD, 0)
     speeds = []
-    fast_forward(v, 8.0, each_step=lambda v: (stream([40.0, 0.0, -3.0])(v), speeds.append(math.hypot(*v.truth.velocity_ned_m_s[:2]))))
+    fast_forward(
+        v,
+        8.0,
+        each_step=lambda v: (stream([40.0, 0.0, -3.0])(v), speeds.append(math.hypot(*v.truth.velocity_ned_m_s[:2]))),
+    )
     assert 2.8 < max(speeds) < 3.2
 
 

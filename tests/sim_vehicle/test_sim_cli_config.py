@@ -21,7 +21,10 @@ pytestmark = pytest.mark.timeout(60)
 
 def test_config_loads_from_toml_and_overrides(tmp_path):
     p = tmp_path / "sim.toml"
-    p.write_text('physics_hz = 150.0\n[vehicles]\ncount = 3\nspawn_ne_m = [[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]]\n[wind]\nmean_speed_m_s = 4.0\n')
+    p.write_text(
+        "physics_hz = 150.0\n[vehicles]\ncount = 3\n"
+        "spawn_ne_m = [[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]]\n[wind]\nmean_speed_m_s = 4.0\n"
+    )
     cfg = load_config(SimConfig, p, ["battery.start_percent=30", "ports.offboard_base=15540"]).validate()
     assert cfg.vehicles.count == 3 and cfg.physics_hz == 150.0 and cfg.wind.mean_speed_m_s == 4.0
     assert cfg.battery.start_percent == 30.0 and cfg.ports.offboard_base == 15540
@@ -43,9 +46,26 @@ def test_skycap_sim_process_streams_mavlink_and_stops_on_sigterm(tmp_path):
     sock.bind(("127.0.0.1", port))
     sock.settimeout(0.2)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "skycap.cli", "sim", "--drones", "1", "--out", str(tmp_path),
-         "--set", f"ports.offboard_base={port}", "--set", "ports.local_base=0", "--set", "ports.gcs_port=0"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        [
+            sys.executable,
+            "-m",
+            "skycap.cli",
+            "sim",
+            "--drones",
+            "1",
+            "--out",
+            str(tmp_path),
+            "--set",
+            f"ports.offboard_base={port}",
+            "--set",
+            "ports.local_base=0",
+            "--set",
+            "ports.gcs_port=0",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     try:
         mav = mavlink.MAVLink(None, 255, 190)

@@ -20,13 +20,22 @@ def make(pos=(0.0, 0.0, -5.0), yaw=0.0):
     return dyn, PositionController(ControllerLimits())
 
 
-def fly(dyn, ctrl, sp, seconds, wind=np.zeros(3), log=None):
+def fly(dyn, ctrl, sp, seconds, wind=None, log=None):
+    wind = np.zeros(3) if wind is None else wind
     for _ in range(int(seconds / DT)):
         s = dyn.state
         z, thrust, yaw_rate = ctrl.update(DT, sp, s.position_ned_m, s.velocity_ned_m_s, s.yaw_rad, s.on_ground)
         dyn.step(DT, z, thrust, yaw_rate, wind)
         if log is not None:
-            log.append((s.position_ned_m.copy(), s.velocity_ned_m_s.copy(), s.accel_ned_m_s2.copy(), s.R_world_body.copy(), s.yaw_rad))
+            log.append(
+                (
+                    s.position_ned_m.copy(),
+                    s.velocity_ned_m_s.copy(),
+                    s.accel_ned_m_s2.copy(),
+                    s.R_world_body.copy(),
+                    s.yaw_rad,
+                )
+            )
 
 
 def test_limits_on_a_long_leg_climb_descent_and_yaw():
@@ -96,7 +105,11 @@ def test_ground_contact():
     dyn, ctrl = make(pos=(0.0, 0.0, 0.0))
     for _ in range(100):  # disarmed: stays put on the ground, level
         dyn.step(DT, np.array([0.3, 0.0, 0.95]), 0.0, 1.0, np.array([5.0, 0.0, 0.0]), motors_on=False)
-    assert dyn.state.on_ground and np.allclose(dyn.state.position_ned_m, 0.0) and dyn.state.R_world_body[2, 2] == pytest.approx(1.0)
+    assert (
+        dyn.state.on_ground
+        and np.allclose(dyn.state.position_ned_m, 0.0)
+        and dyn.state.R_world_body[2, 2] == pytest.approx(1.0)
+    )
     fly(dyn, ctrl, Setpoint(position_ned_m=np.array([0.0, 0.0, -2.0])), 4.0)  # takes off
     assert not dyn.state.on_ground and dyn.state.position_ned_m[2] == pytest.approx(-2.0, abs=0.05)
     for _ in range(int(3.0 / DT)):  # motors cut: falls and rests on the ground, not below it

@@ -73,7 +73,10 @@ class Rig:
 
     def offboard(self, make_msg, seconds):
         self.feed(make_msg())
-        assert self.command(M.MAV_CMD_DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MainMode.OFFBOARD) == M.MAV_RESULT_ACCEPTED
+        assert (
+            self.command(M.MAV_CMD_DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MainMode.OFFBOARD)
+            == M.MAV_RESULT_ACCEPTED
+        )
         n = [0]
 
         def each(v):
@@ -101,7 +104,12 @@ def test_body_frame_velocity_is_rotated_by_heading():
     r = Rig(vehicles__spawn_yaw_deg=90.0)  # facing east
     r.takeoff()
     mask = 0b0000_1101_1100_0111  # velocity + yaw rate(ignored) only
-    r.offboard(lambda: r.client.set_position_target_local_ned_encode(0, 1, 1, M.MAV_FRAME_BODY_NED, mask, 0, 0, 0, 2.0, 0, 0, 0, 0, 0, 0, 0), 4.0)
+    r.offboard(
+        lambda: r.client.set_position_target_local_ned_encode(
+            0, 1, 1, M.MAV_FRAME_BODY_NED, mask, 0, 0, 0, 2.0, 0, 0, 0, 0, 0, 0, 0
+        ),
+        4.0,
+    )
     np.testing.assert_allclose(r.v.truth.velocity_ned_m_s, [0.0, 2.0, 0.0], atol=0.1)
 
 
@@ -111,9 +119,27 @@ def test_global_position_target_relative_altitude():
     o = r.cfg.origin
     lat, lon, _ = ned_to_geodetic(np.array([6.0, -4.0, 0.0]), o.lat_deg, o.lon_deg, o.alt_m)
     mask = 0b0000_1101_1111_1000  # position + yaw
-    r.offboard(lambda: r.client.set_position_target_global_int_encode(
-        0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mask, int(round(float(lat) * 1e7)), int(round(float(lon) * 1e7)), 7.0,
-        0, 0, 0, 0, 0, 0, 0.0, 0.0), 10.0)
+    r.offboard(
+        lambda: r.client.set_position_target_global_int_encode(
+            0,
+            1,
+            1,
+            M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            mask,
+            int(round(float(lat) * 1e7)),
+            int(round(float(lon) * 1e7)),
+            7.0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0.0,
+            0.0,
+        ),
+        10.0,
+    )
     np.testing.assert_allclose(r.v.truth.position_ned_m, [6.0, -4.0, -7.0], atol=0.15)
 
 
@@ -123,8 +149,18 @@ def test_reposition_command_int_and_change_speed():
     o = r.cfg.origin
     lat, lon, _ = ned_to_geodetic(np.array([-10.0, 0.0, 0.0]), o.lat_deg, o.lon_deg, o.alt_m)
     assert r.command(M.MAV_CMD_DO_CHANGE_SPEED, 1, 2.0) == M.MAV_RESULT_ACCEPTED
-    res = r.command(M.MAV_CMD_DO_REPOSITION, -1, M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, use_int=True,
-                    frame=M.MAV_FRAME_GLOBAL_INT, x=int(round(float(lat) * 1e7)), y=int(round(float(lon) * 1e7)), z=o.alt_m + 4.0)
+    res = r.command(
+        M.MAV_CMD_DO_REPOSITION,
+        -1,
+        M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE,
+        0,
+        math.nan,
+        use_int=True,
+        frame=M.MAV_FRAME_GLOBAL_INT,
+        x=int(round(float(lat) * 1e7)),
+        y=int(round(float(lon) * 1e7)),
+        z=o.alt_m + 4.0,
+    )
     assert res == M.MAV_RESULT_ACCEPTED and r.v.mode == FlightMode.HOLD
     speeds = []
     fast_forward(r.v, 9.0, each_step=lambda v: speeds.append(math.hypot(*v.truth.velocity_ned_m_s[:2])))

@@ -161,7 +161,9 @@ def test_set_message_interval_changes_the_stream_rate(two_vehicles):
     assert c.command(1, M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ATTITUDE, -1) == M.MAV_RESULT_ACCEPTED
     c.recv(0.2)
     assert not any(m.get_type() == "ATTITUDE" for m in c.recv(0.5))
-    assert c.command(1, M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_HIGHRES_IMU, 10_000) == M.MAV_RESULT_UNSUPPORTED
+    assert (
+        c.command(1, M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_HIGHRES_IMU, 10_000) == M.MAV_RESULT_UNSUPPORTED
+    )
 
 
 def _mode(c):
@@ -183,7 +185,11 @@ def test_offboard_refused_without_setpoints_and_dropped_when_they_stop(two_vehic
 
     def stream():
         while not stop.is_set():
-            c.mav.send(c.mav.set_position_target_local_ned_encode(0, 1, 1, M.MAV_FRAME_LOCAL_NED, mask, 3.0, 0.0, -3.0, 0, 0, 0, 0, 0, 0, 0.0, 0.0))
+            c.mav.send(
+                c.mav.set_position_target_local_ned_encode(
+                    0, 1, 1, M.MAV_FRAME_LOCAL_NED, mask, 3.0, 0.0, -3.0, 0, 0, 0, 0, 0, 0, 0.0, 0.0
+                )
+            )
             time.sleep(0.1)
 
     th = threading.Thread(target=stream, daemon=True)

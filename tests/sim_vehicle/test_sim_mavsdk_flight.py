@@ -19,7 +19,6 @@ from mavsdk.asyncio.plugins.offboard import OffboardAsync, OffboardError, Offboa
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryAsync
 from mavsdk.component_type import ComponentType
-
 from sim_vehicle_helpers import sim_test_config
 
 from skycap.frames import geodetic_to_ned
@@ -49,7 +48,11 @@ async def connect(port: int):
 async def wait_healthy(tel: TelemetryAsync, timeout_s: float = 10.0):
     async def ok():
         h = await tel.health()
-        return h if (h.is_global_position_ok and h.is_home_position_ok and h.is_armable and h.is_local_position_ok) else None
+        return (
+            h
+            if (h.is_global_position_ok and h.is_home_position_ok and h.is_armable and h.is_local_position_ok)
+            else None
+        )
 
     return await wait_for(ok, timeout_s, "health ok (GPS, home, armable)")
 
@@ -178,7 +181,9 @@ def test_mavsdk_arm_takeoff_offboard_circle_land(sim_world_factory):
     t0 = time.monotonic()
     n_pv, n_att = asyncio.run(flight())
     dt = time.monotonic() - t0
-    assert n_pv / dt > 25 and n_att / dt > 25, f"telemetry too slow: {n_pv / dt:.0f} Hz position, {n_att / dt:.0f} Hz attitude"
+    assert n_pv / dt > 25 and n_att / dt > 25, (
+        f"telemetry too slow: {n_pv / dt:.0f} Hz position, {n_att / dt:.0f} Hz attitude"
+    )
     truth = world.vehicles[0].truth
     assert truth.on_ground and not world.vehicles[0].armed
     # the truth stays within the estimator's bias of where MAVSDK saw it (world frame = local + spawn)
@@ -207,8 +212,11 @@ def test_mavsdk_return_to_launch(sim_world_factory):
             origin = await tel.get_gps_global_origin()
             o = cfg.origin
             np.testing.assert_allclose(
-                geodetic_to_ned(origin.latitude_deg, origin.longitude_deg, origin.altitude_m, o.lat_deg, o.lon_deg, o.alt_m),
-                [2.0, -3.0, 0.0], atol=0.02,
+                geodetic_to_ned(
+                    origin.latitude_deg, origin.longitude_deg, origin.altitude_m, o.lat_deg, o.lon_deg, o.alt_m
+                ),
+                [2.0, -3.0, 0.0],
+                atol=0.02,
             )
             # offboard velocity setpoints
             off = OffboardAsync(system)
@@ -234,7 +242,11 @@ def test_mavsdk_return_to_launch(sim_world_factory):
             await wait_for(lambda: _landed_state_is(tel, LandedState.ON_GROUND), 30.0, "landed at home")
             p = await tel.position()
             dn = math.radians(p.latitude_deg - home.latitude_deg) * 6378137.0
-            de = math.radians(p.longitude_deg - home.longitude_deg) * 6378137.0 * math.cos(math.radians(home.latitude_deg))
+            de = (
+                math.radians(p.longitude_deg - home.longitude_deg)
+                * 6378137.0
+                * math.cos(math.radians(home.latitude_deg))
+            )
             assert math.hypot(dn, de) < 1.0, f"landed {math.hypot(dn, de):.2f} m from home"
         finally:
             mavsdk.destroy()
