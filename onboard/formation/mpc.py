@@ -198,6 +198,16 @@ def _gimbal_pitch_rad(positions, targets) -> np.ndarray:
     return -np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
 
 
+def _reach(t_s: np.ndarray, v0_toward: float, v_max: float, a_max: float, safety: float = 0.8) -> np.ndarray:
+    """Displacement (K,) surely reachable toward a direction by times t_s, starting at speed v0_toward
+    (negative = moving away), accelerating at a_max up to v_max; scaled by ``safety`` and never < 0."""
+    t = np.asarray(t_s, dtype=float)
+    v0 = min(float(v0_toward), v_max)
+    t1 = (v_max - v0) / a_max
+    d = np.where(t <= t1, v0 * t + 0.5 * a_max * t**2, v0 * t1 + 0.5 * a_max * t1**2 + v_max * (t - t1))
+    return np.maximum(safety * d, 0.0) if v0 >= 0 else np.maximum(d - (1 - safety) * np.abs(d), 0.0)
+
+
 class FormationMPC:
     """The formation MPC of one drone; build once (CasADi), call :meth:`step` every ``dt_s``."""
 
@@ -455,19 +465,21 @@ class FormationMPC:
             hh[row] = fh[e]
             row += 1
         # relax rows the current state already violates by what can be recovered by step k
-        recover = 0.5 * 0.9 * c.max_accel_h_m_s2 * t_steps_s**2
         viol0 = hh - np.einsum("lkj,j->lk", hn, p0)
-        relax = np.where(viol0[:, :1] > 0, np.maximum(0.0, viol0[:, :1] - recover[None, :]), 0.0)
+        v_toward = np.einsum("lkj,j->l", hn[:, :1], v0)  # speed toward the safe side, per row
+        recover = np.stack([_reach(t_steps_s, vt, c.max_speed_h_m_s, c.max_accel_h_m_s2) for vt in v_toward])
+        relax = np.where(viol0[:, :1] > 0, np.maximum(0.0, viol0[:, :1] - recover), 0.0)
         hh_eff = np.where(np.isfinite(hh), hh - relax, hh)
 
         # bounds
         lbw, ubw = self._lbw0.copy(), self._ubw0.copy()
         lo_d, hi_d = ground_down_m - c.max_altitude_m, ground_down_m - c.min_altitude_m
-        v_rec = c.max_speed_down_m_s * 0.9 * t_steps_s
+        up_rec = _reach(t_steps_s, -v0[2], c.max_speed_down_m_s, c.max_accel_down_m_s2)  # climb possible by t
+        down_rec = _reach(t_steps_s, v0[2], c.max_speed_down_m_s, c.max_accel_down_m_s2)
         for k in range(N):
             i = self._idx_pos(k).start + 2
-            lbw[i] = min(lo_d, p0[2] + v_rec[k]) if p0[2] < lo_d else lo_d
-            ubw[i] = max(hi_d, p0[2] - v_rec[k]) if p0[2] > hi_d else hi_d
+            lbw[i] = min(lo_d, p0[2] + down_rec[k]) if p0[2] < lo_d else lo_d
+            ubw[i] = max(hi_d, p0[2] - up_rec[k]) if p0[2] > hi_d else hi_d
         lbg, ubg = self._lbg0.copy(), self._ubg0.copy()
         rps = self._rows_per_step
         M = self._M

@@ -173,3 +173,24 @@ def test_plan_from_state_is_avoided():
     r = m.step(0, np.array([0.0, 2.0, -8.0]), np.zeros(3), PERSON + [-8.0, 0, 0], np.zeros(3), math.pi / 2, {"mate": q})
     # the bisecting plane shifted by d/2: distance >= (|a - b| + d) / 2 >= d while the old plans were >= d apart
     assert r.ok and r.min_teammate_distance_m >= 3.0 - 1e-2
+
+
+def test_altitude_band_and_vertical_speed():
+    cfg = MpcConfig(min_altitude_m=3.0, max_altitude_m=10.0, altitude_m=8.0, max_speed_down_m_s=1.0, max_solve_time_s=1.0)
+    m = FormationMPC("d0", cfg)
+    ground = -2.0  # ground 2 m above the origin
+    # start 1 m above the ground (below the band): climbs back at <= 1 m/s, never below its start
+    p, v = np.array([8.0, 0.0, ground - 1.0]), np.zeros(3)
+    alts = []
+    for k in range(80):
+        r = m.step(k * int(1e8), p, v, np.array([0.0, 0.0, ground - 0.85]), np.zeros(3), 0.0, ground_down_m=ground)
+        assert abs(r.setpoint_velocity_ned_m_s[2]) <= 1.0 + 1e-3
+        p, v = r.setpoint_position_ned_m, r.setpoint_velocity_ned_m_s
+        alts.append(ground - p[2])
+    assert min(alts) >= 1.0 - 1e-3 and abs(alts[-1] - 8.0) < 0.1
+    assert m.fallback_count == 0
+    # the band is a hard limit: a slot above it is clipped to the band
+    m2 = FormationMPC("d0", MpcConfig(max_altitude_m=9.0, altitude_m=9.0, max_solve_time_s=1.0))
+    for k in range(40):
+        r = m2.step(k * int(1e8), np.array([8.0, 0.0, -8.95]), np.zeros(3), PERSON, np.zeros(3), 0.0)
+        assert np.all(-r.plan.positions_ned_m[1:, 2] <= 9.0 + 1e-3)
