@@ -358,7 +358,9 @@ class Agent:
         sub(keys.gcs_key(cfg.fleet, keys.CMD), self.on_command, Command)
         sub(keys.gcs_key(cfg.fleet, keys.PLAN), self.on_plan, OrbitPlan)
         if cfg.record_camera:
-            for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D):
+            # the simulator camera also sends exact keypoints and simulated detections: kept for evaluation
+            for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D, "sim/keypoints2d_gt",
+                          "sim/detections"):
                 sub(self.key(topic), self.on_camera, None)
         try:
             self.bus.declare_alive(keys.alive_key(cfg.fleet, self.id))

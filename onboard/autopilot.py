@@ -230,17 +230,18 @@ class MavsdkAutopilot:
         await self._do("hold", self.action.hold())
 
     async def set_setpoint(self, sp: Setpoint) -> None:
-        """Stream one position + velocity feed-forward + yaw setpoint (NED)."""
-        from mavsdk.asyncio.plugins.offboard import PositionNedYaw, VelocityNedYaw
+        """Stream one position + velocity and acceleration feed-forward + yaw setpoint (world NED)."""
+        from mavsdk.asyncio.plugins.offboard import AccelerationNed, PositionNedYaw, VelocityNedYaw
 
         if self.local_to_world_ned_m is None:
             raise AutopilotError(f"{self.drone_id}: no position fix yet, cannot place a world setpoint")
         yaw_deg = math.degrees(sp.yaw_rad)
         p = np.asarray(sp.position_ned_m) - self.local_to_world_ned_m  # world -> autopilot local
-        v = sp.velocity_ned_m_s
-        await self.offboard.set_position_velocity_ned(
+        v, a = sp.velocity_ned_m_s, sp.acceleration_ned_m_s2
+        await self.offboard.set_position_velocity_acceleration_ned(
             PositionNedYaw(float(p[0]), float(p[1]), float(p[2]), yaw_deg),
             VelocityNedYaw(float(v[0]), float(v[1]), float(v[2]), yaw_deg),
+            AccelerationNed(float(a[0]), float(a[1]), float(a[2])),
         )
 
     async def start_offboard(self) -> None:

@@ -192,7 +192,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         old.unlink(missing_ok=True)
     ids = _drone_ids(cfg.drones)
     phases = evenly_spaced_phases(ids)
-    sim_set = [f"vehicles.count={cfg.drones}", f"ports.offboard_base={cfg.mavlink_base}", "ports.gcs_port=0"]
+    sim_set = [f"vehicles.count={cfg.drones}", f"ports.offboard_base={cfg.mavlink_base}", "ports.local_base=0",
+               "ports.gcs_port=0"]
     if cfg.orbit.spawn_under_slots:
         spawn = ", ".join(f"[{n}, {e}]" for n, e in _spawn_positions(cfg, phases))
         sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")
