@@ -114,3 +114,17 @@ def test_agent_lands_when_ground_station_heartbeat_stops_and_on_sigterm(flight):
     assert proc.wait(40) == 0, fl.log("drone_1")
     assert -fl.truth()[2] < 0.3, "the agent exited before touchdown"
     assert "shutdown while airborne: land" in fl.log("drone_1")
+
+
+def test_agent_lands_on_low_battery(flight):
+    fl = flight(1, ["battery.start_percent=24", "battery.hover_drain_pct_per_min=60"])
+    fl.start_agent(0, "--set", "safety.low_battery_frac=0.2")
+    assert fl.fleet.wait_until(lambda f: "drone_1" in f.states and f.states["drone_1"].health_ok, 40), fl.log("drone_1")
+    acks = fl.fleet.command("takeoff", wait_s=30, expect=["drone_1"], results=("completed", "failed", "refused"))
+    assert acks["drone_1"].result == "completed", fl.log("drone_1")
+    assert fl.fleet.wait_until(lambda f: -fl.truth()[2] > 1.0, 20), "never took off"
+    assert fl.wait_state("drone_1", "landing", 15), fl.log("drone_1")
+    assert "low battery" in fl.log("drone_1")
+    assert fl.fleet.states["drone_1"].battery_remaining_frac < 0.2
+    assert fl.wait_state("drone_1", "landed", 30), fl.log("drone_1")
+    assert -fl.truth()[2] < 0.3
