@@ -1,0 +1,1 @@
+"""Package data: the shipped ONNX person detector (see README.md here)."""

@@ -1,0 +1,1 @@
+"""Package data: the shipped ONNX keypoint models (see README.md here)."""
