@@ -1,0 +1,177 @@
+"""The monocular (one orbiting drone) pipeline of DroCap: 2D tracks -> single-frame init -> bundle adjustment.
+
+:func:`reconstruct_monocular` runs, on one camera's 2D COCO-17 keypoints ``W_px`` (T, 2, 17):
+
+1. track cleaning (:func:`reconstruction.monocular.tracks.temporal_outlier_mask`): keypoints that jump
+   away from their temporal neighbours get zero weight;
+2. single-frame initialisation (:func:`reconstruction.monocular.single_frame.initialise`), which also
+   flags keypoints inconsistent with the dictionary pose as outliers;
+3. multi-frame bundle adjustment (:func:`reconstruction.monocular.ba.bundle_adjust`), the paper's
+   objective (``variant="paper"``) or the extended one (``variant="extended"``: temporal smoothness of
+   poses and rotations, and, when the drone's camera attitude ``T_world_cam`` is given, a prior pulling
+   R_t to it, with the poses expressed in the world frame).
+
+Poses come back in the orthographic camera's pixel units; :func:`to_world_metric` places them in the
+world (NED, metres) using the camera poses and an assumed body size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+
+from reconstruction.monocular.ba import BAConfig, BAResult, bundle_adjust
+from reconstruction.monocular.dictionary import PoseDictionary
+from reconstruction.monocular.linalg import complete_rotation
+from reconstruction.monocular.single_frame import InitConfig, InitResult, initialise
+from reconstruction.monocular.tracks import temporal_outlier_mask
+
+log = logging.getLogger(__name__)
+
+__all__ = ["TrackConfig", "MonocularConfig", "MonocularResult", "reconstruct_monocular", "to_world_metric"]
+
+
+@dataclasses.dataclass
+class TrackConfig:
+    enabled: bool = True
+    half_window: int = 3
+    threshold_rel: float = 0.2
+
+
+@dataclasses.dataclass
+class ExtensionConfig:
+    """Beyond the paper (``variant = "extended"``)."""
+
+    smooth_S: float = 0.5  # temporal smoothness of the poses (per frame^2, normalised units)
+    smooth_R: float = 0.5  # temporal smoothness of the rotations
+    rot_prior: float = 2.0  # weight of the drone-attitude prior on R_t (used when camera poses are known)
+
+
+@dataclasses.dataclass
+class MonocularConfig:
+    tracks: TrackConfig = dataclasses.field(default_factory=TrackConfig)
+    init: InitConfig = dataclasses.field(default_factory=InitConfig)
+    ba: BAConfig = dataclasses.field(default_factory=BAConfig)
+    extension: ExtensionConfig = dataclasses.field(default_factory=ExtensionConfig)
+    ablation_no_articulation: bool = True  # also run BA with gamma = 0 (the paper's "BA w/o art.")
+
+
+@dataclasses.dataclass
+class MonocularResult:
+    init: InitResult
+    ba: BAResult  # the paper's BA (gamma from config)
+    ba_no_articulation: BAResult | None
+    ba_extended: BAResult | None  # None unless requested
+    weights: np.ndarray  # (T, J) weights used by BA
+    init_seconds: float
+    ba_seconds: float
+    ba_extended_frame: str = "canonical"  # "world" when the attitude prior was used
+
+
+def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
+    """Express the init in the world frame via the known camera rotations.
+
+    The init gives camera coordinates ~ Rbar_t S_t (Rbar = R completed to 3x3); with R_cw the camera's
+    world->camera rotation, S_world = R_cw^T Rbar S and R_t = R_cw[:2] reproduce the same image.
+    """
+    R_cw = np.swapaxes(T_world_cam[:, :3, :3], 1, 2)
+    Rbar = complete_rotation(init.R)
+    G = np.swapaxes(R_cw, 1, 2) @ Rbar
+    S_world = G @ init.S
+    return S_world, R_cw[:, :2, :].copy()
+
+
+def reconstruct_monocular(
+    W_px: np.ndarray,
+    confidence: np.ndarray | None,
+    dictionary: PoseDictionary,
+    cfg: MonocularConfig | None = None,
+    T_world_cam: np.ndarray | None = None,
+    extended: bool = False,
+) -> MonocularResult:
+    """Run the pipeline on one camera's keypoints.
+
+    Args:
+        W_px: (T, 2, 17) keypoints in pixels (NaN where missing).
+        confidence: (T, 17) in [0, 1]; None = all ones.
+        dictionary: the pose dictionary.
+        T_world_cam: (T, 4, 4) the drone's camera poses at the frames (for the extended variant's prior).
+        extended: also run the extended BA.
+    """
+    cfg = cfg or MonocularConfig()
+    W_px = np.asarray(W_px, dtype=float)
+    T = W_px.shape[0]
+    conf = np.ones((T, W_px.shape[2])) if confidence is None else np.asarray(confidence, dtype=float).copy()
+    conf = np.where(np.isfinite(W_px).all(1), conf, 0.0)
+    if cfg.tracks.enabled and T >= 3:
+        flagged = temporal_outlier_mask(W_px, conf, cfg.tracks.half_window, cfg.tracks.threshold_rel)
+        conf = conf * ~flagged
+        log.info("track cleaning: %d of %d keypoints flagged", int(flagged.sum()), int((conf > 0).sum() + flagged.sum()))
+    t0 = time.perf_counter()
+    init = initialise(W_px, conf, dictionary, cfg.init)
+    init_s = time.perf_counter() - t0
+    w = conf * init.inlier
+    t0 = time.perf_counter()
+    ba = bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, cfg.ba)
+    ba_s = time.perf_counter() - t0
+    ba0 = None
+    if cfg.ablation_no_articulation:
+        ba0 = bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, dataclasses.replace(cfg.ba, gamma=0.0))
+    ext, frame = None, "canonical"
+    if extended:
+        e = cfg.extension
+        bcfg = dataclasses.replace(cfg.ba, smooth_S=e.smooth_S, smooth_R=e.smooth_R)
+        if T_world_cam is not None:
+            S0, R_prior = _world_frame_start(init, np.asarray(T_world_cam, dtype=float))
+            ext = bundle_adjust(
+                W_px, w, S0, R_prior, dictionary.limbs, dataclasses.replace(bcfg, rot_prior=e.rot_prior), R_prior=R_prior
+            )
+            frame = "world"
+        else:
+            ext = bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, bcfg)
+    return MonocularResult(
+        init=init, ba=ba, ba_no_articulation=ba0, ba_extended=ext, weights=w, init_seconds=init_s, ba_seconds=ba_s,
+        ba_extended_frame=frame,
+    )  # fmt: skip
+
+
+def to_world_metric(
+    S_px: np.ndarray,
+    R: np.ndarray,
+    W_px: np.ndarray,
+    weights: np.ndarray,
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    body_rms_radius_m: float,
+    frame: str = "canonical",
+) -> np.ndarray:
+    """Place orthographic reconstructions in the world: joints (T, 17, 3) metres NED.
+
+    The metric scale is not observable from one view, so each pose is scaled to the RMS radius
+    ``body_rms_radius_m`` (e.g. the dictionary's mean); the depth of the body centre follows from the
+    image size (depth = f * radius_m / radius_px), the centre lies on the ray through the weighted
+    2D centre, and the orientation comes from the camera's rotation (R completed to 3x3).
+    """
+    T = S_px.shape[0]
+    S = S_px - S_px.mean(axis=2, keepdims=True)
+    rad_px = np.sqrt(np.mean(np.sum(S**2, axis=1), axis=1))  # (T,)
+    s = body_rms_radius_m / np.maximum(rad_px, 1e-9)  # metres per pixel-unit
+    R_wc = T_world_cam[:, :3, :3]
+    if frame == "world":
+        S_w = S * s[:, None, None]
+    else:
+        S_cam = complete_rotation(R) @ S * s[:, None, None]
+        S_w = R_wc @ S_cam
+    f = 0.5 * (K[..., 0, 0] + K[..., 1, 1]) * np.ones(T)
+    depth = f * body_rms_radius_m / np.maximum(rad_px, 1e-9)
+    w = np.where(np.isfinite(W_px).all(1), weights, 0.0)
+    Wz = np.where(np.isfinite(W_px), W_px, 0.0)
+    c_px = np.einsum("tij,tj->ti", Wz, w) / np.maximum(w.sum(-1), 1e-9)[:, None]
+    Kinv = np.linalg.inv(K) * np.ones((T, 1, 1))
+    ray = np.einsum("tij,tj->ti", Kinv, np.concatenate([c_px, np.ones((T, 1))], 1))
+    centre_cam = ray / ray[:, 2:3] * depth[:, None]
+    centre_w = np.einsum("tij,tj->ti", R_wc, centre_cam) + T_world_cam[:, :3, 3]
+    return np.swapaxes(S_w, 1, 2) + centre_w[:, None, :]

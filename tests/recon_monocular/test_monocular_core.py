@@ -1,0 +1,274 @@
+"""Monocular (DroCap) core: proximal operators, rank-1 update, Stiefel steps, initialisation, bundle adjustment."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from reconstruction.monocular.ba import BAConfig, _Problem, bundle_adjust, squared_limb_lengths
+from reconstruction.monocular.dictionary import (
+    DEFAULT_DICTIONARY,
+    PoseDictionary,
+    canonicalize_poses,
+    load_dictionary,
+)
+from reconstruction.monocular.linalg import (
+    complete_rotation,
+    polar_2x3,
+    project_l1_ball,
+    prox_spectral_2x3,
+    rank1_approx,
+    stiefel_mm_step,
+    svt,
+)
+from reconstruction.monocular.single_frame import initialise
+from reconstruction.monocular.tracks import temporal_outlier_mask
+from skycap.skeleton import COCO17_LIMBS
+
+
+@pytest.fixture(scope="module")
+def dictionary() -> PoseDictionary:
+    return load_dictionary()
+
+
+# ---------------------------------------------------------------- proximal operators (hand-computed)
+
+
+def test_svt_diagonal_hand_computed():
+    X = np.array([[3.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    Y, nn = svt(X, 0.5)
+    np.testing.assert_allclose(Y, [[2.5, 0, 0], [0, 0.5, 0]], atol=1e-12)
+    assert nn == pytest.approx(3.0)
+    Y, nn = svt(X, 2.0)  # the small singular value is killed
+    np.testing.assert_allclose(Y, [[1.0, 0, 0], [0, 0, 0]], atol=1e-12)
+    assert nn == pytest.approx(1.0)
+    Y, nn = svt(X, 5.0)
+    np.testing.assert_allclose(Y, 0.0, atol=1e-12)
+    assert nn == 0.0
+
+
+def test_svt_rotated_hand_computed():
+    # X = U diag(4, 2) V^T with 45-degree rotations; SVT(1) = U diag(3, 1) V^T
+    c = np.sqrt(0.5)
+    U = np.array([[c, -c], [c, c]])
+    V = np.array([[1.0, 0.0], [0.0, 1.0]])
+    X = U @ np.diag([4.0, 2.0]) @ V.T
+    Y, nn = svt(X, 1.0)
+    np.testing.assert_allclose(Y, U @ np.diag([3.0, 1.0]) @ V.T, atol=1e-12)
+    np.testing.assert_allclose(Y, [[3 * c, -c], [3 * c, c]], atol=1e-12)
+    assert nn == pytest.approx(4.0)
+
+
+def test_ba_proximal_step_is_svt_of_stacked_poses():
+    # Two frames, one joint: S# = [[2, 0], [0, 0], [0, 0]] (3 x 2): threshold alpha * step = 0.5
+    T = 2
+    W = np.zeros((T, 2, 1))
+    prob = _Problem(W, np.ones((T, 1)), [], BAConfig(alpha=0.5 / np.sqrt(T)), None)
+    X = np.zeros((T, 3, 1))
+    X[0, 0, 0] = 2.0
+    Y, nn = prob.prox(X, 1.0)
+    assert Y[0, 0, 0] == pytest.approx(1.5)
+    assert np.count_nonzero(np.abs(Y) > 1e-12) == 1
+    assert nn == pytest.approx(1.5)
+
+
+def test_project_l1_ball_hand_computed():
+    np.testing.assert_allclose(project_l1_ball(np.array([3.0, 1.0]), 1.0), [1.0, 0.0])
+    np.testing.assert_allclose(project_l1_ball(np.array([3.0, 1.0]), 3.0), [2.5, 0.5])
+    np.testing.assert_allclose(project_l1_ball(np.array([0.5, -0.25]), 1.0), [0.5, -0.25])  # inside
+    np.testing.assert_allclose(project_l1_ball(np.array([-2.0, 2.0]), 2.0), [-1.0, 1.0])
+
+
+def test_prox_spectral_hand_computed():
+    M = np.array([[3.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    # singular values (3, 1); minus their projection on the l1 ball of radius tau
+    np.testing.assert_allclose(prox_spectral_2x3(M, 1.0), [[2, 0, 0], [0, 1, 0]], atol=1e-12)
+    np.testing.assert_allclose(prox_spectral_2x3(M, 3.0), [[0.5, 0, 0], [0, 0.5, 0]], atol=1e-12)
+    np.testing.assert_allclose(prox_spectral_2x3(M, 4.0), 0.0, atol=1e-12)
+
+
+def test_prox_spectral_minimises_its_objective():
+    rng = np.random.default_rng(1)
+    M = rng.normal(size=(50, 2, 3))
+    tau = 0.7
+    Y = prox_spectral_2x3(M, tau)
+
+    def obj(Z):
+        return 0.5 * np.sum((Z - M) ** 2, axis=(-1, -2)) + tau * np.linalg.norm(Z, ord=2, axis=(-2, -1))
+
+    base = obj(Y)
+    for _ in range(20):
+        assert np.all(obj(Y + 1e-3 * rng.normal(size=Y.shape)) >= base - 1e-12)
+
+
+# ---------------------------------------------------------------- rank-1 update, Stiefel
+
+
+def test_rank1_update_hand_computed_and_exact_for_scaled_skeleton():
+    X = np.array([[3.0, 0.0], [0.0, 1.0]])
+    np.testing.assert_allclose(rank1_approx(X), [[3.0, 0.0], [0.0, 0.0]], atol=1e-12)
+    X = np.outer([1.0, 2.0], [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(rank1_approx(X), X, atol=1e-12)
+    # a skeleton whose size changes over time: l(S) is rank 1, so L = l(S) (articulation term is 0)
+    rng = np.random.default_rng(0)
+    S0 = rng.normal(size=(3, 17))
+    scales = np.linspace(0.5, 2.0, 7)
+    Rs = Rotation.random(7, random_state=1).as_matrix()
+    S = np.stack([s * R @ S0 for s, R in zip(scales, Rs)])
+    a = np.array([l[0] for l in COCO17_LIMBS])
+    b = np.array([l[1] for l in COCO17_LIMBS])
+    ell = squared_limb_lengths(S, a, b)
+    np.testing.assert_allclose(rank1_approx(ell), ell, rtol=1e-10, atol=1e-12)
+    # with noise, it is the SVD truncation (Eckart-Young): residual = the other singular values
+    noisy = ell + 0.01 * rng.normal(size=ell.shape)
+    s = np.linalg.svd(noisy, compute_uv=False)
+    assert np.linalg.norm(noisy - rank1_approx(noisy)) == pytest.approx(np.sqrt(np.sum(s[1:] ** 2)))
+
+
+def test_polar_and_stiefel_mm_never_increase():
+    rng = np.random.default_rng(2)
+    M = rng.normal(size=(100, 2, 3))
+    P = polar_2x3(M)
+    np.testing.assert_allclose(P @ np.swapaxes(P, 1, 2), np.broadcast_to(np.eye(2), (100, 2, 2)), atol=1e-10)
+    U, _, Vt = np.linalg.svd(M, full_matrices=False)
+    np.testing.assert_allclose(P, U @ Vt, atol=1e-10)
+    S = rng.normal(size=(100, 3, 17))
+    W = rng.normal(size=(100, 2, 17))
+    w = rng.random((100, 17))
+    A = np.einsum("tij,tj,tkj->tik", S, w, S)
+    C = np.einsum("tij,tj,tkj->tik", W, w, S)
+    R = polar_2x3(rng.normal(size=(100, 2, 3)))
+
+    def f(R):
+        return np.einsum("tij,tj->t", (W - R @ S) ** 2, w)
+
+    prev = f(R)
+    for _ in range(30):
+        R = stiefel_mm_step(R, A, C)
+        cur = f(R)
+        assert np.all(cur <= prev + 1e-10)
+        prev = cur
+
+
+# ---------------------------------------------------------------- dictionary and initialisation
+
+
+def test_shipped_dictionary_is_documented(dictionary):
+    assert DEFAULT_DICTIONARY.is_file() and DEFAULT_DICTIONARY.stat().st_size < 200_000
+    assert dictionary.bases.shape == (64, 3, 17)
+    np.testing.assert_allclose(np.linalg.norm(dictionary.bases.reshape(64, -1), axis=1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(dictionary.bases.mean(axis=2), 0.0, atol=1e-5)  # centred atoms
+    assert "mocap.cs.cmu.edu" in dictionary.credit
+    from reconstruction.dictionary.learn_dictionary import EVAL_CLIPS
+
+    assert dictionary.clips and not set(dictionary.clips) & set(EVAL_CLIPS)
+
+
+def test_canonical_frame_removes_rotation_and_translation():
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(5, 17, 3))
+    R = Rotation.random(5, random_state=4).as_matrix()
+    J2 = np.einsum("nij,nkj->nki", R, J) + rng.normal(size=(5, 1, 3))
+    np.testing.assert_allclose(canonicalize_poses(J), canonicalize_poses(J2), atol=1e-10)
+
+
+def _dictionary_poses(d: PoseDictionary, T: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    c = np.zeros((T, d.num_bases))
+    for t in range(T):
+        k = rng.choice(d.num_bases, 3, replace=False)
+        c[t, k] = rng.uniform(0.5, 1.0, 3) * rng.choice([-1.0, 1.0], 3) * np.array([2.0, 0.5, 0.5])
+    S = d.compose(c)
+    # (R, c) and (-R, -c) project identically; the initialisation returns the upright one
+    return S * np.sign(np.einsum("tij,ij->t", S, d.mean_pose))[:, None, None]
+
+
+def test_init_recovers_exact_dictionary_pose_under_known_rotation(dictionary):
+    T = 8
+    S = _dictionary_poses(dictionary, T, seed=5)  # (T, 3, 17) exact sparse combinations
+    # a rotation about the vertical axis seen from slightly above, the setting of an orbiting drone
+    yaw = np.radians(np.linspace(0, 300, T))
+    Rfull = Rotation.from_euler("xy", np.stack([np.full(T, 0.3), yaw], 1)).as_matrix()
+    R = Rfull[:, :2]
+    W = 400.0 * (R @ S) + np.array([900.0, 500.0])[None, :, None]
+    res = initialise(W, None, dictionary)
+    rms = np.sqrt(np.mean(np.sum(S**2, axis=1), axis=1))
+    scale = np.sqrt(np.mean(np.sum(res.S**2, axis=1), axis=1))
+    S_hat = res.S * (rms / scale)[:, None, None]
+    err = np.sqrt(np.mean(np.sum((S_hat - S) ** 2, axis=1), axis=1)) / rms  # no alignment: same frame
+    assert np.median(err) < 0.02, err
+    assert np.mean(err < 0.05) >= 0.75, err
+    # rotation recovered (rows of R) for the frames whose pose is recovered
+    ok = err < 0.05
+    assert np.max(np.abs(res.R[ok] - R[ok])) < 0.05
+    assert np.all(res.inlier)
+    # reprojection matches the input
+    assert np.median(np.abs(res.reprojection() - W)) < 2.0
+
+
+def test_init_flags_gross_outliers(dictionary):
+    T = 6
+    S = _dictionary_poses(dictionary, T, seed=7)
+    yaw = np.radians(np.linspace(0, 200, T))
+    R = Rotation.from_euler("xy", np.stack([np.full(T, 0.2), yaw], 1)).as_matrix()[:, :2]
+    W = 400.0 * (R @ S) + 800.0
+    bad = np.zeros((T, 17), bool)
+    # rigid-torso and head keypoints (a moved wrist could be explained by another arm pose)
+    bad[np.arange(T), [0, 5, 6, 11, 12, 1]] = True
+    W_out = W.copy()
+    W_out[:, 0][bad] += 250.0
+    res = initialise(W_out, None, dictionary)
+    assert np.all(~res.inlier[bad])
+    assert np.mean(~res.inlier[~bad]) < 0.05
+
+
+def test_temporal_outlier_mask_finds_jumps():
+    T = 50
+    t = np.arange(T)[:, None]
+    W = np.stack([100 + 5.0 * t + np.arange(17)[None] * 10.0, 200 + 2.0 * t + np.arange(17)[None] * 20.0], axis=1)
+    conf = np.ones((T, 17))
+    W2 = W.copy()
+    W2[10, :, 3] += 150.0
+    W2[30, :, 9] -= 120.0
+    conf[20, 4] = 0.0
+    m = temporal_outlier_mask(W2, conf)
+    assert m[10, 3] and m[30, 9]
+    assert m.sum() == 2
+
+
+# ---------------------------------------------------------------- bundle adjustment
+
+
+def _noisy_orthographic_sequence(d: PoseDictionary, T=40, seed=11, noise=0.01):
+    """Smooth motion of dictionary poses seen by an orthographic camera turning about the vertical."""
+    rng = np.random.default_rng(seed)
+    keys = _dictionary_poses(d, 5, seed)
+    s = np.linspace(0, 4, T)
+    i = np.minimum(s.astype(int), 3)
+    f = (s - i)[:, None, None]
+    S = (1 - f) * keys[i] + f * keys[i + 1]
+    yaw = np.radians(25.0 * np.arange(T) / 10.0)  # 25 deg/s at 10 fps
+    R = Rotation.from_euler("xy", np.stack([np.full(T, 0.3), yaw], 1)).as_matrix()[:, :2]
+    W = R @ S + noise * rng.normal(size=(T, 2, 17))
+    return S, R, W
+
+
+def test_bundle_adjust_decreases_objective_monotonically(dictionary):
+    S, R, W = _noisy_orthographic_sequence(dictionary)
+    T = W.shape[0]
+    rng = np.random.default_rng(12)
+    S0 = S + 0.05 * rng.normal(size=S.shape)
+    R0 = polar_2x3(R + 0.05 * rng.normal(size=R.shape))
+    w = np.ones((T, 17))
+    for cfg in (
+        BAConfig(gamma=1.0, outer_iters=25, tol=0.0),
+        BAConfig(gamma=0.0, outer_iters=25, tol=0.0),
+        BAConfig(gamma=1.0, outer_iters=25, tol=0.0, smooth_S=0.5, smooth_R=0.5, rot_prior=1.0),
+    ):
+        res = bundle_adjust(W, w, S0, R0, COCO17_LIMBS, cfg, R_prior=R)
+        F = res.objective
+        assert len(F) == 26
+        assert np.all(np.diff(F) <= 1e-9 * F[0]), np.diff(F)
+        assert F[-1] < 0.8 * F[0]
+        np.testing.assert_allclose(res.R @ np.swapaxes(res.R, 1, 2), np.broadcast_to(np.eye(2), (T, 2, 2)), atol=1e-9)

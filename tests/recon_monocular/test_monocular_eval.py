@@ -1,0 +1,51 @@
+"""End to end on real motion capture: ``skycap eval monocular`` on a held-out CMU clip (needs shared data)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from reconstruction.dictionary.learn_dictionary import EVAL_CLIPS
+from skycap.cli import main
+
+
+@pytest.mark.shared_data
+def test_eval_monocular_cli_on_held_out_clip(cmu_dir, tmp_path):
+    clip = cmu_dir / "002" / "002_05.bvh"
+    assert clip.stem in EVAL_CLIPS
+    out = tmp_path / "mono"
+    rc = main(["eval", "monocular", "--motion", str(clip), "--out", str(out), "--seconds", "5", "--set", "method.ba.outer_iters=60"])
+    assert rc == 0
+    m = json.loads((out / "metrics.json").read_text())
+    for k in ("pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_no_articulation", "per_joint_mm", "frames",
+              "init_seconds", "ba_seconds", "pa_mpjpe_mm_ba_extended"):  # fmt: skip
+        assert k in m, k
+    assert m["frames"] == 121
+    assert set(m["per_joint_mm"]) == {"shoulder", "elbow", "wrist", "hip", "knee", "ankle"}
+    assert np.isfinite(m["pa_mpjpe_mm_ba"])
+    # the bundle adjustment must clearly improve on the single-frame initialisation
+    assert m["pa_mpjpe_mm_ba"] < 0.8 * m["pa_mpjpe_mm_init"]
+    assert (out / "config.toml").is_file()
+    assert not set(m["dictionary_clips"]) & set(EVAL_CLIPS)
+
+
+@pytest.mark.shared_data
+def test_eval_monocular_sweep_draws_figure(cmu_dir, tmp_path):
+    clip = cmu_dir / "002" / "002_05.bvh"
+    out = tmp_path / "sweep"
+    rc = main(["eval", "monocular-sweep", "--motion", str(clip), "--out", str(out), "--seconds", "3", "--omegas", "0", "40",
+               "--no-extended", "--set", "method.ba.outer_iters=30"])  # fmt: skip
+    assert rc == 0
+    png = (out / "figure2.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    means = json.loads((out / "metrics.json").read_text())
+    assert means["angular_velocity_deg_s"] == [0.0, 40.0]
+    assert len(means["pa_mpjpe_mm_ba"]) == 2
+
+
+def test_eval_monocular_rejects_missing_motion(tmp_path, capsys):
+    rc = main(["eval", "monocular", "--motion", str(tmp_path / "nope.bvh"), "--out", str(tmp_path / "o")])
+    assert rc == 2
+    assert "does not exist" in capsys.readouterr().err
