@@ -147,6 +147,12 @@ class PersonState:
     motion: str  #: name of the clip playing (the dominant one during a cross-fade)
     walking: bool
 
+    def body(self):
+        """The rendered body's ellipsoids (:func:`simulator.scene.body.body_ellipsoids`) in the world frame."""
+        from simulator.scene.body import body_ellipsoids
+
+        return body_ellipsoids(self.joints_ned_m)
+
     def truth_fields(self) -> dict:
         """Keyword arguments for the person part of :class:`shared_msgs.SimTruth`."""
         return dict(
@@ -309,6 +315,7 @@ class PersonSim:
         seg = self.segments[i]
         local, anchor, heading = self._eval(seg, tau, k)
         motion = seg.clip.name if seg.kind == "stop" else self.walk.name
+        T = self.cfg.turn_s
         # previous segment (wrapping round when looping) for the transitions
         if i > 0 or self.cfg.loop:
             j = i - 1 if i > 0 else len(self.segments) - 1
@@ -316,7 +323,9 @@ class PersonSim:
             tau_p, k_p = (tau, k) if i > 0 else (tau + self.period_s, k - 1)
             dt = tau - seg.t0
             lp, ap, hp = self._eval(prev, tau_p, k_p)
-            wh = _smoothstep(dt / self.cfg.turn_s) if self.cfg.turn_s > 0 else 1.0
+            # walk -> walk: the turn is centred on the corner (it began before it, see below)
+            w0 = 0.5 if (prev.kind == "walk" and seg.kind == "walk") else 0.0
+            wh = _smoothstep(w0 + dt / T) if T > 0 else 1.0
             heading = _lerp_angle(hp, heading, wh)
             if prev.kind == "stop" or seg.kind == "stop":
                 wb = _smoothstep(dt / self.cfg.blend_s) if self.cfg.blend_s > 0 else 1.0
@@ -325,6 +334,12 @@ class PersonSim:
                 anchor = (1.0 - wb) * ap + wb * anchor
                 if wb < 0.5:
                     motion = prev.clip.name if prev.kind == "stop" else self.walk.name
+        # walk -> walk ahead: start turning half a turn time before the corner
+        if seg.kind == "walk" and T > 0 and (i + 1 < len(self.segments) or self.cfg.loop):
+            nxt = self.segments[(i + 1) % len(self.segments)]
+            remaining = seg.t1 - tau
+            if nxt.kind == "walk" and remaining < 0.5 * T:
+                heading = _lerp_angle(heading, nxt.heading, _smoothstep(0.5 - remaining / T))
         joints = local @ _rot_z(heading).T
         joints[:, 0] += anchor[0]
         joints[:, 1] += anchor[1]

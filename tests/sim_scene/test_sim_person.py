@@ -132,6 +132,16 @@ def test_truth_fields_fill_simtruth(person):
     assert back.person_motion == st.motion
 
 
+def test_turns_are_centred_on_corners_without_stops():
+    cfg = PersonConfig(waypoints_ne_m=[[0, 0], [4, 0], [4, 4]], stops=[], loop=False, turn_s=0.6)
+    p = PersonSim(cfg)
+    corner = p.segments[0].t1
+    h = [p.state_at(corner + dt).heading_rad for dt in (-0.5, -0.1, 0.0, 0.1, 0.5)]
+    assert h[0] == pytest.approx(0.0, abs=1e-6) and h[-1] == pytest.approx(math.pi / 2, abs=1e-6)
+    assert h[2] == pytest.approx(math.pi / 4, abs=1e-6)  # halfway round exactly at the corner
+    assert h[0] < h[1] < h[2] < h[3] < h[4]
+
+
 def test_no_loop_ends_standing_at_last_waypoint():
     p = PersonSim(PersonConfig(waypoints_ne_m=[[0, 0], [3, 0]], stops=[], loop=False))
     st = p.state_at(100.0)
