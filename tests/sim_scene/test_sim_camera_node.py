@@ -163,3 +163,22 @@ def test_run_loop_keeps_the_rate(person):
 def test_no_truth_no_frame(person):
     node = CameraNode("drone_1", SceneConfig(camera=CameraConfig(width_px=160, height_px=90)), lambda: None, lambda t, m: None)
     assert node.step() is None and node.stats["no_truth"] == 1
+
+
+def test_preview_writes_video_and_contact_sheet(tmp_path):
+    from simulator.scene.preview import run_preview
+
+    cfg = SceneConfig(camera=CameraConfig(width_px=160, height_px=90, rate_hz=10.0))
+    video = run_preview(cfg, tmp_path, seconds=1.5, radius_m=8.0, altitude_m=4.0, deg_per_s=12.0)
+    cap = cv2.VideoCapture(str(video))
+    n = 0
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        assert frame.shape == (90, 160, 3)
+        n += 1
+    assert n == 15
+    sheet = cv2.imread(str(tmp_path / "contact_sheet.jpg"))
+    assert sheet.shape == (3 * 90, 4 * 160, 3)
+    assert (tmp_path / "config.toml").is_file()

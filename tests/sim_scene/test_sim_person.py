@@ -172,3 +172,14 @@ def test_make_clips_regenerates_the_committed_clips(cmu_dir, tmp_path):
         a, b = np.load(f), np.load(tmp_path / f.name)
         assert np.allclose(a["joints_ned_m"], b["joints_ned_m"], atol=1e-5), f.name
         assert str(a["source"]) == str(b["source"])
+
+
+def test_extra_motions_dir(tmp_path):
+    import shutil
+
+    shutil.copy(BUILTIN_MOTIONS_DIR / "jump.npz", tmp_path / "myjump.npz")
+    (tmp_path / "broken.npz").write_bytes(b"not a zip")
+    p = PersonSim(PersonConfig(stops=[StopConfig(0, "myjump")], motions_dir=str(tmp_path)))
+    assert p.segments[0].clip.name == "myjump"
+    with pytest.raises(PersonError, match="not a valid clip file"):
+        PersonSim(PersonConfig(stops=[StopConfig(0, "broken")], motions_dir=str(tmp_path)))
