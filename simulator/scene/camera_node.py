@@ -211,7 +211,7 @@ class CameraNode:
         persons: list[PersonKeypoints] = []
         gt_persons: list[PersonKeypoints] = []
         if gt is not None:
-            det = self.kp_detector.detect(gt, W, H)
+            det = self.kp_detector.detect(gt, W, H, t_s=t_ns * 1e-9)
             if det is not None:
                 persons.append(det.to_person_keypoints())
             gp = self.gt_person(gt)

@@ -134,6 +134,9 @@ class SimDetectorConfig:
 
     noise_px: float = 1.5
     noise_frac_of_height: float = 0.015
+    #: correlation time of the inlier noise (first-order Gauss-Markov per joint and axis, same std):
+    #: a real detector's error drifts rather than jumping every frame; 0 = independent per frame
+    noise_correlation_s: float = 0.15
     #: mean and spread of an inlier's confidence before it is scaled down with its actual error
     conf_mean: float = 0.85
     conf_std: float = 0.08
@@ -170,6 +173,8 @@ class SimDetectorConfig:
             raise ConfigError("sim_detector.occluded_noise_scale must be >= 0 and occluded_conf_scale in [0, 1]")
         if self.noise_px < 0 or self.noise_frac_of_height < 0 or self.box_noise_frac < 0:
             raise ConfigError("sim_detector noise values must be >= 0")
+        if self.noise_correlation_s < 0:
+            raise ConfigError("sim_detector.noise_correlation_s must be >= 0 (0 = white noise)")
         if self.box_false_alarm_rate < 0:
             raise ConfigError("sim_detector.box_false_alarm_rate must be >= 0")
         return self

@@ -12,7 +12,9 @@ Keypoint errors, per frame, for a detected person (GT box height >= ``min_height
 * per visible joint, exclusively: **miss** (``miss_prob``: confidence 0), **outlier**
   (``outlier_prob``: uniform in the person's box grown by ``outlier_box_scale``, confidence uniform in
   [outlier_conf_min, outlier_conf_max]) or **inlier**: Gaussian noise of std
-  ``sqrt(noise_px^2 + (noise_frac_of_height * box_height)^2)`` per axis, confidence
+  ``sqrt(noise_px^2 + (noise_frac_of_height * box_height)^2)`` per axis (with the frame times given,
+  first-order Gauss-Markov in time with correlation time ``noise_correlation_s``: same std, drifting
+  rather than white), confidence
   ``clip(N(conf_mean, conf_std)) * exp(-0.5 (|error| / (2 std))^2)`` (larger errors, lower confidence);
 * joints hidden behind another body part (``GtProjection.occluded``): noise std times
   ``occluded_noise_scale``, confidence times ``occluded_conf_scale``, miss probability
@@ -72,8 +74,23 @@ class SimKeypointDetector:
     def __init__(self, cfg: SimDetectorConfig | None = None, rng: np.random.Generator | None = None):
         self.cfg = (cfg or SimDetectorConfig()).validate()
         self.rng = rng if rng is not None else np.random.default_rng(self.cfg.seed)
+        self._z: np.ndarray | None = None  # (17, 2) unit-variance noise state
+        self._t_s: float | None = None
 
-    def detect(self, gt: GtProjection, width_px: int, height_px: int) -> SimKeypoints | None:
+    def _unit_noise(self, t_s: float | None) -> np.ndarray:
+        """(17, 2) standard-normal noise; AR(1) over time when t_s is given and a correlation time is set."""
+        tau = self.cfg.noise_correlation_s
+        w = self.rng.normal(0.0, 1.0, size=(17, 2))
+        if t_s is None or tau <= 0 or self._z is None or self._t_s is None or not 0 <= t_s - self._t_s < 5 * tau:
+            z = w
+        else:
+            rho = float(np.exp(-(t_s - self._t_s) / tau))
+            z = rho * self._z + np.sqrt(1.0 - rho * rho) * w
+        self._z, self._t_s = z, t_s
+        return z
+
+    def detect(self, gt: GtProjection, width_px: int, height_px: int, t_s: float | None = None) -> SimKeypoints | None:
+        """A noisy detection of the person in ``gt``; ``t_s`` (frame time) enables temporally correlated noise."""
         cfg, rng = self.cfg, self.rng
         if gt.box_px is None:
             return None
@@ -91,7 +108,8 @@ class SimKeypointDetector:
             visible = visible[_FLIP]
             occluded = occluded[_FLIP]
         sig_j = np.where(occluded, sigma * cfg.occluded_noise_scale, sigma)
-        noise = rng.normal(0.0, 1.0, size=(17, 2)) * sig_j[:, None]
+        z = self._unit_noise(t_s)
+        noise = (z[_FLIP] if swapped else z) * sig_j[:, None]
         uv = uv_true + noise
         err = np.linalg.norm(noise, axis=1)
         conf_base = np.clip(rng.normal(cfg.conf_mean, cfg.conf_std, size=17), 0.05, 1.0)

@@ -46,6 +46,18 @@ def test_noise_std_and_confidence_match_config():
     assert np.corrcoef(e, conf.ravel())[0, 1] < -0.3
 
 
+def test_noise_is_temporally_correlated_when_frame_times_are_given():
+    cfg = SimDetectorConfig(miss_prob=0.0, outlier_prob=0.0, swap_prob=0.0, noise_correlation_s=0.15)
+    gt = make_gt()
+    det = SimKeypointDetector(cfg)
+    err = np.array([det.detect(gt, W, H, t_s=0.1 * i).uv_px - gt.uv_px for i in range(1500)])  # (N, 17, 2)
+    rho = np.mean([np.corrcoef(err[:-1, j, a], err[1:, j, a])[0, 1] for j in range(17) for a in range(2)])
+    assert rho == pytest.approx(np.exp(-0.1 / 0.15), abs=0.05)
+    assert err.std() == pytest.approx(det.detect(gt, W, H).sigma_px, rel=0.05)  # same std as white
+    white = np.array([det.detect(gt, W, H).uv_px - gt.uv_px for _ in range(800)])
+    assert abs(np.corrcoef(white[:-1, 3, 0], white[1:, 3, 0])[0, 1]) < 0.1
+
+
 def test_miss_outlier_swap_rates_match_config():
     cfg = SimDetectorConfig(miss_prob=0.1, outlier_prob=0.05, swap_prob=0.2, seed=3)
     gt = make_gt()
