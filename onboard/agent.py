@@ -52,7 +52,7 @@ from shared_msgs import (
 )
 from onboard.config import AgentConfig
 from onboard.recorder import channel_name
-from onboard.mission import Action, Mission, State, validate_command, validate_plan
+from onboard.mission import Action, Mission, State, closest_neighbour, validate_command, validate_plan
 from onboard.orbit import HoldSource, OrbitController, Setpoint, SetpointSource
 
 log = logging.getLogger(__name__)
@@ -120,6 +120,9 @@ class Agent:
         self._last_state_pub_s = 0.0
         self._cpu = (time.monotonic(), time.process_time())
         self.warnings: list[str] = []
+        #: latest positions of the other drones {drone_id: (position_ned_m, monotonic receive time)}
+        self.neighbours: dict[str, tuple[tuple[float, float, float], float]] = {}
+        self._separation_warned = False
         self.acks: list[CommandAck] = []  # for tests and the health report
         autopilot.on_state = self._on_state
 
@@ -174,6 +177,11 @@ class Agent:
         if not self.gcs_seen:
             log.info("%s: ground-station heartbeat received", self.id)
         self.gcs_seen = True
+
+    def on_neighbour_state(self, rx) -> None:
+        node = keys.parse_key(rx.key)[1]
+        if node != self.id:
+            self.neighbours[node] = (rx.msg.position_ned_m, time.monotonic())
 
     def on_command(self, rx) -> None:
         self._record(rx.key, rx.data, rx.t_received_ns)
@@ -328,6 +336,25 @@ class Agent:
                 self._failsafe(f"ground-station heartbeat lost for {silent:.1f} s", fs.gcs_loss_action)
             if T["battery_frac"] < fs.low_battery_frac:
                 self._failsafe(f"low battery {100 * T['battery_frac']:.0f}%", fs.low_battery_action)
+            self._check_separation(pos)
+
+    def _check_separation(self, pos) -> None:
+        plan = self.mission.plan
+        if pos is None or self.mission.state != State.ORBIT:
+            return
+        near = closest_neighbour(pos, self.neighbours, time.monotonic())
+        limit = plan.min_separation_m if plan is not None else 3.0
+        if near is None or near[1] >= limit:
+            self._separation_warned = False
+            return
+        reason = f"separation: {near[0]} at {near[1]:.1f} m (< {limit:.1f} m)"
+        if self.cfg.safety.separation_action == "warn":
+            if not self._separation_warned:
+                log.warning("%s: %s", self.id, reason)
+                self.warnings.append(reason)
+            self._separation_warned = True
+        else:
+            self._failsafe(reason, self.cfg.safety.separation_action)
 
     def _failsafe(self, reason: str, action: str) -> None:
         tr = self.mission.trigger_failsafe(reason, action)
@@ -357,6 +384,7 @@ class Agent:
         sub(keys.gcs_key(cfg.fleet, keys.HEALTH), self.on_gcs_health, Health)
         sub(keys.gcs_key(cfg.fleet, keys.CMD), self.on_command, Command)
         sub(keys.gcs_key(cfg.fleet, keys.PLAN), self.on_plan, OrbitPlan)
+        sub(keys.all_drones_key(cfg.fleet, keys.STATE), self.on_neighbour_state, VehicleState)
         if cfg.record_camera:
             # the simulator camera also sends exact keypoints and simulated detections: kept for evaluation
             for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D, "sim/keypoints2d_gt",

@@ -42,6 +42,8 @@ class SafetyConfig:
     #: on SIGTERM while airborne: "land" (and wait for touchdown up to ``sigterm_land_timeout_s``) or "hold"
     sigterm_action: str = "land"
     sigterm_land_timeout_s: float = 20.0
+    #: another drone closer than the plan's min_separation_m while airborne: "hold", "land" or "warn"
+    separation_action: str = "hold"
     #: plan altitude band (metres above ground)
     min_altitude_m: float = 2.0
     max_altitude_m: float = 60.0
@@ -110,6 +112,8 @@ class AgentConfig:
             v = getattr(self.safety, name)
             if v not in ("land", "return", "hold"):
                 raise ConfigError(f"safety.{name}={v!r}; use 'land', 'return' or 'hold'")
+        if self.safety.separation_action not in ("hold", "land", "warn"):
+            raise ConfigError(f"safety.separation_action={self.safety.separation_action!r}; use 'hold', 'land' or 'warn'")
         if self.safety.sigterm_action not in ("land", "hold"):
             raise ConfigError(f"safety.sigterm_action={self.safety.sigterm_action!r}; use 'land' or 'hold'")
         if self.rates.setpoint_hz < 2:

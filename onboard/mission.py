@@ -23,7 +23,7 @@ from shared_msgs import Command, OrbitPlan
 from onboard.config import SafetyConfig
 from onboard.orbit import min_slot_separation_m
 
-__all__ = ["State", "Action", "Mission", "validate_command", "validate_plan", "message_age_s"]
+__all__ = ["State", "Action", "Mission", "validate_command", "validate_plan", "message_age_s", "closest_neighbour"]
 
 
 class State(str, Enum):
@@ -116,6 +116,20 @@ def validate_plan(plan: OrbitPlan, drone_id: str, safety: SafetyConfig, now_ns: 
     if age > max_age_s:
         return f"stale: plan sent {age:.1f} s ago (> {max_age_s} s)"
     return None
+
+
+def closest_neighbour(own_ned_m, others: dict[str, tuple[tuple[float, float, float], float]], now_s: float,
+                      max_age_s: float = 1.0) -> tuple[str, float] | None:
+    """The nearest other drone ``(drone_id, distance_m)`` among ``others`` = {id: (position_ned_m, t_s)}
+    reported at most ``max_age_s`` ago; None when nobody fresh is known."""
+    best: tuple[str, float] | None = None
+    for d, (p, t) in others.items():
+        if now_s - t > max_age_s:
+            continue
+        dist = math.dist(own_ned_m, p)
+        if best is None or dist < best[1]:
+            best = (d, dist)
+    return best
 
 
 @dataclass

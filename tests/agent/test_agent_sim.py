@@ -128,3 +128,30 @@ def test_agent_lands_on_low_battery(flight):
     assert fl.fleet.states["drone_1"].battery_remaining_frac < 0.2
     assert fl.wait_state("drone_1", "landed", 30), fl.log("drone_1")
     assert -fl.truth()[2] < 0.3
+
+
+def test_agent_holds_when_another_drone_comes_too_close(flight):
+    fl = flight(1)
+    fl.start_agent(0)
+    _hover(fl)
+    home = fl.truth()
+    center = (home[0] + 4.0, home[1], 0.0)
+    plan = make_orbit_plan(["drone_1"], center, radius_m=4.0, altitude_m=4.0, angular_speed_rad_s=0.3,
+                           min_separation_m=3.0)
+    fl.fleet.send_plan(plan)
+    assert fl.fleet.wait_acks(plan.plan_id, ["drone_1"], 5)["drone_1"].result == "accepted"
+    assert fl.fleet.command("start", wait_s=10, expect=["drone_1"], results=("completed",))["drone_1"]
+    time.sleep(3.0)
+    assert fl.agent_state("drone_1") == "orbit"
+    # an intruder (another fleet member's state) 1.5 m away
+    key = keys.drone_key(fl.fleet_id, "drone_9", keys.STATE)
+    t_end = time.monotonic() + 2.0
+    while time.monotonic() < t_end:
+        p = fl.fleet.states["drone_1"].position_ned_m
+        st = VehicleState(header=VehicleState.make_header("drone_9"), position_ned_m=(p[0] + 1.5, p[1], p[2]),
+                          velocity_ned_m_s=(0.0, 0.0, 0.0), q_world_body=(1.0, 0.0, 0.0, 0.0))
+        fl.bus.publish(key, st)
+        time.sleep(0.1)
+    assert fl.wait_state("drone_1", "paused", 3), fl.log("drone_1")
+    assert "separation: drone_9" in fl.log("drone_1")
+    assert fl.fleet.wait_until(lambda f: f.states["drone_1"].flight_mode == "HOLD", 3)

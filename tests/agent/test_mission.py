@@ -98,3 +98,12 @@ def test_failsafes_only_when_airborne_and_block_restart():
     m3 = Mission()
     m3.command("takeoff"); m3.vehicle(True, True, True)
     assert m3.trigger_failsafe("shutdown", "hold").action == Action.HOLD
+
+
+def test_closest_neighbour_ignores_stale_reports():
+    from onboard.mission import closest_neighbour
+
+    others = {"drone_2": ((3.0, 4.0, 0.0), 10.0), "drone_3": ((1.0, 0.0, 0.0), 5.0), "drone_4": ((0.0, 9.0, 0.0), 10.2)}
+    assert closest_neighbour((0.0, 0.0, 0.0), others, now_s=10.5) == ("drone_2", 5.0)
+    assert closest_neighbour((0.0, 0.0, 0.0), others, now_s=10.5, max_age_s=10.0) == ("drone_3", 1.0)
+    assert closest_neighbour((0.0, 0.0, 0.0), others, now_s=30.0) is None
