@@ -11,14 +11,15 @@ How (per frame):
   point (north, east) samples a tileable procedural grass texture with 2 m mown checker squares
   (``cv2.remap`` with wrap-around), fading to the texture's mean colour where a pixel covers many
   texels (a one-level mip map against aliasing) and to the horizon haze with distance. The ray
-  geometry is computed on a half-resolution grid and resized (it is smooth); the texture is sampled at
-  full resolution. Rays above the horizon get a sky gradient.
+  geometry and blend weights are computed on a coarse grid (every ``ground_grid_px``-th pixel; they are
+  smooth) and resized; the texture is sampled at full resolution. Rays above the horizon get a sky
+  gradient. A camera at or under the ground plane sees it from 5 cm above.
 * **Person.** 17 ellipsoids (:mod:`simulator.scene.body`) are ray-cast analytically in the person's
   exact image box only (dual-quadric outline), at 2x2 supersampling while the box is small (anti-
   aliased edges), with a per-pixel depth test between parts, true surface normals and Lambert shading
   from the sun plus sky light.
 * **Shadow.** Ground pixels around the person's sun-shadow footprint cast a ray to the sun; a hit on
-  any ellipsoid darkens them (softened by a small blur).
+  any ellipsoid darkens them (computed at half resolution and resized: a soft edge).
 """
 
 from __future__ import annotations
