@@ -183,3 +183,15 @@ def test_extra_motions_dir(tmp_path):
     assert p.segments[0].clip.name == "myjump"
     with pytest.raises(PersonError, match="not a valid clip file"):
         PersonSim(PersonConfig(stops=[StopConfig(0, "broken")], motions_dir=str(tmp_path)))
+
+
+def test_scene_config_round_trips_through_toml(tmp_path):
+    from simulator.scene.config import SceneConfig
+    from skycap.config import save_config
+
+    cfg = load_config(SceneConfig, overrides=["camera.width_px=960", "person.loop=false", "sim_detector.seed=4"])
+    path = save_config(cfg, tmp_path / "scene.toml")
+    back = load_config(SceneConfig, path)
+    assert back == cfg and back.camera.width_px == 960 and back.person.stops == cfg.person.stops
+    with pytest.raises(ConfigError, match="unknown config key 'camera.widht_px'"):
+        load_config(SceneConfig, overrides=["camera.widht_px=3"])
