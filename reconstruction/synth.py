@@ -17,9 +17,12 @@ Pipeline (:func:`synthesize_capture`):
    left/right swapped, with ``miss_rate`` a keypoint is missing (confidence 0); points outside the
    image are missing. Confidences: inliers U(0.5, 1), outliers U(0.2, 0.8) (a detector is often
    confident about its mistakes). ``detectors`` independent detectors per camera.
-5. Drone self-pose estimates: true pose + error made of a constant bias and a slow drift (period
-   5-20 s) per axis; ``camera_pos_noise_m`` and ``camera_rot_noise_deg`` are the RMS 3D error
-   (position norm, rotation angle). The capture carries these sigmas as the drones' uncertainty.
+5. Drone self-pose estimates: true pose + error; ``camera_pos_noise_m`` and ``camera_rot_noise_deg``
+   are the RMS 3D error (position norm, rotation angle). A fraction ``camera_noise_drift_fraction`` of
+   the error variance is a constant bias + slow drift (period 5-20 s) per axis, the rest is white
+   noise per pose sample (GNSS/IMU jitter). Default 0 (white): a bias common to all drones cannot be
+   observed from images (it moves cameras and person together) and shows up in MPJPE 1:1. The capture
+   carries these sigmas as the drones' uncertainty.
 
 Example::
 
@@ -60,6 +63,7 @@ class SynthConfig:
     detectors: int = 1
     camera_pos_noise_m: float = 0.5
     camera_rot_noise_deg: float = 2.0
+    camera_noise_drift_fraction: float = 0.0
     width_px: int = 1920
     height_px: int = 1080
     focal_px: float = 1500.0
@@ -110,6 +114,13 @@ def _smooth_error(rng: np.random.Generator, t_s: np.ndarray, rms: float) -> np.n
     return bias + amp * np.sin(2 * np.pi * t_s[:, None] / period + phase)
 
 
+def _pose_error(rng: np.random.Generator, t_s: np.ndarray, rms: float, drift_fraction: float) -> np.ndarray:
+    """(N, 3) error with RMS 3D norm ``rms``: drift part (variance fraction) + white part."""
+    f = float(np.clip(drift_fraction, 0.0, 1.0))
+    white = rng.normal(0.0, rms * np.sqrt(1 - f) / np.sqrt(3.0), (len(t_s), 3))
+    return _smooth_error(rng, t_s, rms * np.sqrt(f)) + white
+
+
 def synthesize_capture(
     joints_ned: np.ndarray, t_ns: np.ndarray, cfg: SynthConfig | None = None, seed: int = 0
 ) -> tuple[Capture, SynthTruth]:
@@ -152,8 +163,8 @@ def synthesize_capture(
         wob = _smooth_error(rng, tp_s, np.radians(cfg.aim_wobble_deg) * np.linalg.norm(pos - hip_p, axis=-1).mean())
         T_true = look_at_T_world_cam(pos, hip_p + wob)
         # drone estimate = truth + bias/drift
-        dp = _smooth_error(rng, tp_s, cfg.camera_pos_noise_m)
-        dr = _smooth_error(rng, tp_s, np.radians(cfg.camera_rot_noise_deg))
+        dp = _pose_error(rng, tp_s, cfg.camera_pos_noise_m, cfg.camera_noise_drift_fraction)
+        dr = _pose_error(rng, tp_s, np.radians(cfg.camera_rot_noise_deg), cfg.camera_noise_drift_fraction)
         R_est = Rotation.from_rotvec(dr).as_matrix() @ T_true[:, :3, :3]
         T_est = make_T(R_est, T_true[:, :3, 3] + dp)
 
@@ -199,3 +210,34 @@ def synthesize_capture(
         T_true_frames.append(T_tf)
     cap = Capture(cams, meta={"source": "synthetic", "synth": dataclasses.asdict(cfg), "seed": seed})
     return cap, SynthTruth(t_ns, joints_ned, T_true_all, T_true_frames)
+
+
+def procedural_walker(num_frames: int = 40, fps: float = 30.0, shape: np.ndarray | None = None, speed_mps: float = 1.2):
+    """A rigid COCO-17 skeleton walking north with swinging legs and a bent elbow (no mocap needed).
+
+    Returns (joints_ned (T, 17, 3), t_ns (T,), shape (16,), pose (T, 11, 3) axis-angle, root_orient (T, 3),
+    transl (T, 3)) -- the exact parameters of :mod:`reconstruction.body.skeleton17` that produce it.
+    """
+    import torch
+
+    from reconstruction.body import skeleton17 as sk
+
+    shape = sk.DEFAULT_SHAPE.copy() if shape is None else np.asarray(shape, dtype=float)
+    t = np.arange(num_frames) / fps
+    pose = np.zeros((num_frames, sk.NUM_POSE, 3))
+    pose[:, 0, 0] = 0.5 * np.sin(2 * t)  # l_hip
+    pose[:, 2, 0] = -0.5 * np.sin(2 * t)  # r_hip
+    pose[:, 1, 0] = 0.4 + 0.3 * np.sin(2 * t)  # l_knee
+    pose[:, 3, 0] = 0.4 - 0.3 * np.sin(2 * t)  # r_knee
+    pose[:, 6, 2] = -1.3  # l_shoulder: arm down
+    pose[:, 8, 2] = 1.3
+    pose[:, 7, 1] = 0.8  # l_elbow
+    pose[:, 9, 1] = -0.8
+    # body (x left, y up, z forward) -> NED facing north: forward = north, left = -east, up = -down
+    R_root = np.array([[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]])
+    root_orient = np.tile(Rotation.from_matrix(R_root).as_rotvec(), (num_frames, 1))
+    transl = np.stack([t * speed_mps, np.zeros_like(t), np.full_like(t, -(shape[1] + shape[2]) - 0.05)], -1)
+    R_loc = sk.axis_angle_to_matrix(torch.tensor(pose))
+    nodes = sk.forward_kinematics_torch(torch.tensor(R_root).expand(num_frames, 3, 3), R_loc, torch.tensor(transl), torch.tensor(shape))
+    joints = nodes.numpy()[:, sk.COCO_TO_NODE]
+    return joints, np.round(t * 1e9).astype(np.int64), shape, pose, root_orient, transl

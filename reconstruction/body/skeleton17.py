@@ -171,6 +171,22 @@ def _kabsch(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
 
 
+def _axis_then_roll(axis_rest: np.ndarray, axis_t: np.ndarray, others_rest: np.ndarray, others_t: np.ndarray) -> np.ndarray:
+    """Rotations (T, 3, 3) taking ``axis_rest`` (3,) exactly onto the direction ``axis_t`` (T, 3), with
+    the roll about it that best aligns ``others_rest`` (K, 3) with ``others_t`` (T, K, 3)."""
+    R1 = _min_rotation(np.broadcast_to(axis_rest, axis_t.shape), axis_t)
+    n = _unit(axis_t)
+    a = np.einsum("tij,kj->tki", R1, others_rest)
+    a = a - n[:, None] * np.sum(a * n[:, None], -1, keepdims=True)
+    b = others_t - n[:, None] * np.sum(others_t * n[:, None], -1, keepdims=True)
+    phi = np.arctan2(np.sum(np.cross(a, b) * n[:, None], (-1, -2)), np.sum(a * b, (-1, -2)))
+    K = np.zeros(n.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -n[..., 2], n[..., 1], -n[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = n[..., 2], -n[..., 1], n[..., 0]
+    s, c = np.sin(phi)[:, None, None], np.cos(phi)[:, None, None]
+    return (np.eye(3) + s * K + (1 - c) * (K @ K)) @ R1
+
+
 def inverse_kinematics(joints: np.ndarray, shape: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rotations that put the skeleton on COCO-17 joints (T, 17, 3) given its shape (16,).
 
@@ -184,10 +200,8 @@ def inverse_kinematics(joints: np.ndarray, shape: np.ndarray) -> tuple[np.ndarra
     off = rest_offsets(np.asarray(shape, dtype=float))
     G = np.zeros((T, 21, 3, 3))
     L = np.broadcast_to(np.eye(3), (T, 21, 3, 3)).copy()
-    # root: hips strongly, neck direction for the roll about the hip axis
-    A = np.stack([off[1], off[4], off[8]])
-    Bv = np.stack([J[:, 1] - J[:, 0], J[:, 4] - J[:, 0], J[:, 8] - J[:, 0]], 1)
-    G[:, 0] = _kabsch(A, Bv, np.array([1e3, 1e3, 1.0]))
+    # root: the hip axis exactly, the neck direction for the roll about it
+    G[:, 0] = _axis_then_roll(off[1] - off[4], J[:, 1] - J[:, 4], off[8][None], (J[:, 8] - J[:, 0])[:, None])
     for j in range(1, 21):
         p = PARENTS[j]
         Gp = G[:, p] if p != 7 and p != 15 else G[:, p]
@@ -199,10 +213,11 @@ def inverse_kinematics(joints: np.ndarray, shape: np.ndarray) -> tuple[np.ndarra
         if j == 7:  # spine: turns the rest spine offset onto the actual neck direction
             b = np.einsum("tij,tj->ti", to_local, J[:, 8] - J[:, 7])
             L[:, j] = _min_rotation(np.broadcast_to(off[8], b.shape), b)
-        elif j == 8:  # neck: shoulders strongly, face for the remaining roll
-            A = np.stack([off[9], off[12]] + [off[k] for k in (16, 17, 18, 19, 20)])
-            Bv = np.stack([J[:, 9] - J[:, 8], J[:, 12] - J[:, 8]] + [J[:, k] - J[:, 8] for k in (16, 17, 18, 19, 20)], 1)
-            L[:, j] = _kabsch(A, np.einsum("tij,tkj->tki", to_local, Bv), np.array([1e3, 1e3, 1, 1, 1, 1, 1.0]))
+        elif j == 8:  # neck: the shoulder axis exactly, the face for the roll about it
+            A = np.stack([off[k] for k in (16, 17, 18, 19, 20)])
+            Bv = np.stack([J[:, k] - J[:, 8] for k in (16, 17, 18, 19, 20)], 1)
+            L[:, j] = _axis_then_roll(off[9] - off[12], np.einsum("tij,tj->ti", to_local, J[:, 9] - J[:, 12]),
+                                      A, np.einsum("tij,tkj->tki", to_local, Bv))  # fmt: skip
         elif j == 15:  # head: face points
             ks = (16, 17, 18, 19, 20)
             A = np.stack([off[k] for k in ks])

@@ -5,33 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reconstruction.body import skeleton17 as sk
 from reconstruction.capture import Capture, CaptureError, CameraCapture
 from reconstruction.export import BVH_JOINT_FOR_COCO, export_motion, write_joints_bvh
-from reconstruction.synth import SynthConfig, synthesize_capture
+from reconstruction.synth import SynthConfig, procedural_walker, synthesize_capture
 from skycap.frames import project_points, yup_to_ned
 
 
-def _walker(T: int = 40, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A rigid skeleton walking north with swinging limbs: joints (T,17,3) NED, t_ns, shape."""
-    rng = np.random.default_rng(seed)
-    shape = sk.DEFAULT_SHAPE.copy()
-    t = np.arange(T) / 30.0
-    pose = np.zeros((T, sk.NUM_POSE, 3))
-    pose[:, 0, 0] = 0.5 * np.sin(2 * t)  # l_hip
-    pose[:, 2, 0] = -0.5 * np.sin(2 * t)
-    pose[:, 1, 0] = 0.4 + 0.3 * np.sin(2 * t)  # knee
-    pose[:, 7, 1] = 0.8 + 0.1 * rng.normal()  # elbow
-    import torch
-
-    from reconstruction.body.skeleton17 import axis_angle_to_matrix, forward_kinematics_torch
-
-    R_loc = axis_angle_to_matrix(torch.tensor(pose))
-    # body x=left,y=up,z=forward -> NED facing north: forward=north, left=-east, up=-down
-    R_root = torch.tensor(np.array([[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]))[None].expand(T, 3, 3)
-    transl = torch.tensor(np.stack([t * 1.2, np.zeros(T), np.full(T, -0.95)], -1))
-    nodes = forward_kinematics_torch(R_root, R_loc, transl, torch.tensor(shape)).numpy()
-    return nodes[:, sk.COCO_TO_NODE], (t * 1e9).astype(np.int64), shape
+def _walker(T: int = 40):
+    J, t_ns, shape, *_ = procedural_walker(T)
+    return J, t_ns, shape
 
 
 def test_synthetic_capture_projects_truth_and_roundtrips(tmp_path):

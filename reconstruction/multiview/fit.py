@@ -1,0 +1,344 @@
+"""Multi-view body fitting: AirCap's per-frame objective (``method="paper"``) and the product's
+whole-sequence fit (``method="product"``), both over any :class:`reconstruction.body.model.BodyModel`
+with the learned :class:`reconstruction.prior.PosePrior`.
+
+Paper path (AirCap, ICCV 2019, sec. 3.3 and 4.4), per output time t, independently:
+
+    E = sum_{c,d,n} w^{n,d}_{c,t} rho_{sigma1}(|Pi(r_c, p_c, J_n(theta_t, beta_t)) - j^{n,d}_{c,t}|)
+        + lambda_rp sum_c [rho_{sigma2}(|r_c - r~_c|) + rho_{sigma2}(|p_c - p~_c|)]
+        + lambda_z E_prior(theta_t) + lambda_beta E_shape(beta_t)
+
+with rho_s(e) = e^2 / (e^2 + s^2) (Geman-McClure), sigma1 = 40 px, sigma2 = 10 (read as 10 degrees
+for the rotation vector and 10 cm for the position: the paper gives no unit), camera rotation vector
+and position of every camera free per frame, the nearest-in-time frame of every camera, Adam with
+1000 iterations at lr 0.25 for the first frame and 100 at lr 0.1 for each next one (warm-started from
+the previous frame). Our GMM prior's energy stands in for VPoser's |z| (no open VPoser exists); the
+skeleton's shape energy for |beta|. The first frame starts from the robust triangulation (below), as
+AirCap's online person estimate would.
+
+Product path: all output times at once. Unknowns: pose, root orientation and root position per output
+time, ONE shape for the person, and a pose correction (rotation vector, position) for EVERY camera
+frame. Energy (negative log-likelihoods, summed, divided by the number of output times):
+
+* data: each frame's keypoints against the body joints INTERPOLATED to the frame's capture time
+  (cameras need no synchronisation), Geman-McClure with a scale annealed from 40 px to
+  ``sigma_px_end``, weighted by confidence, normalised by the expected noise; for every detection the
+  cheaper of the given and the left/right-swapped labelling counts (swap robustness);
+* pose prior (GMM NLL) + joint-limit penalty; shape Mahalanobis to the population;
+* temporal smoothness: joint accelerations / ``accel_sigma_mps2`` (all 17 joints, so root and pose);
+* cameras: robust GPS/IMU prior on each frame's correction using the drones' own sigmas, and a
+  motion-smoothness prior on the REFINED camera trajectory (position and rotation accelerations);
+
+initialised by robust triangulation (IRLS Geman-McClure over views), a shape measured on it, and
+inverse kinematics; Adam (one-cycle learning rate) for ``iters`` steps, batched over the whole sequence on ``device``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+from tqdm import tqdm
+
+from reconstruction.body import skeleton17 as sk
+from reconstruction.body.model import BodyModel, SkeletonBodyModel
+from reconstruction.capture import Capture
+from reconstruction.multiview.observations import fill_gaps, gather, interpolate_to_grid, median_in_time, triangulate
+from reconstruction.prior import PosePrior, load_default_prior
+from skycap.skeleton import COCO17_FLIP
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FitConfig", "FitResult", "fit_capture", "initial_guess"]
+
+
+@dataclasses.dataclass
+class FitConfig:
+    method: str = "product"  # "product" | "paper"
+    device: str = "cpu"
+    threads: int = 1  # torch CPU threads during the fit (small tensors: 1 is fastest; 0 = leave torch's)
+    # paper path (AirCap)
+    sigma1_px: float = 40.0
+    sigma2: float = 10.0
+    paper_first_iters: int = 1000
+    paper_first_lr: float = 0.25
+    paper_iters: int = 100
+    paper_lr: float = 0.1
+    paper_w_cam: float = 1.0
+    paper_w_pose: float = 0.01
+    paper_w_shape: float = 0.01
+    # product path
+    iters: int = 300
+    lr: float = 0.03
+    expected_noise_px: float = 5.0
+    sigma_px_start: float = 40.0
+    sigma_px_end: float = 12.0
+    w_pose_prior: float = 1.0
+    w_limits: float = 100.0
+    w_shape: float = 1.0
+    accel_sigma_mps2: float = 15.0
+    w_cam_prior: float = 1.0
+    cam_accel_sigma_mps2: float = 0.3
+    cam_ang_accel_sigma_radps2: float = 0.2
+    cam_smooth_window_s: float = 2.0
+    swap_robust: bool = True
+    refine_cameras: bool = True
+
+
+@dataclasses.dataclass
+class FitResult:
+    t_ns: np.ndarray  # (T,)
+    joints_ned: np.ndarray  # (T, 17, 3)
+    root_orient: np.ndarray  # (T, 3) axis-angle body -> world
+    pose: np.ndarray  # (T, P, 3)
+    transl: np.ndarray  # (T, 3)
+    shape: np.ndarray  # (S,)
+    cam_index: np.ndarray  # (N,) camera of each refined frame
+    cam_t_ns: np.ndarray  # (N,)
+    T_world_cam_refined: np.ndarray  # (N, 4, 4)
+    T_world_cam_drone: np.ndarray  # (N, 4, 4)
+    fit_seconds: float
+    method: str
+
+    def params(self) -> dict:
+        return {"root_orient": self.root_orient, "pose": self.pose, "transl": self.transl, "shape": self.shape}
+
+
+def _gm(e2: torch.Tensor, s: float) -> torch.Tensor:
+    """Geman-McClure on squared residuals, scaled to behave like e^2 near 0: s^2 e^2 / (e^2 + s^2)."""
+    return s * s * e2 / (e2 + s * s)
+
+
+def _rotvec_to_R(w: torch.Tensor) -> torch.Tensor:
+    return sk.axis_angle_to_matrix(w)
+
+
+def _project(X: torch.Tensor, R_wc: torch.Tensor, p: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Pixels (N, 17, 2) of world points X (N, 17, 3) seen by cameras (R_wc (N, 3, 3), p (N, 3), K (N, 3, 3))."""
+    pc = torch.einsum("nji,nkj->nki", R_wc, X - p[:, None])  # R^T (X - p)
+    z = pc[..., 2:].clamp(min=0.1)
+    xy = pc[..., :2] / z
+    return torch.einsum("nij,nkj->nki", K[:, :2, :2], xy) + K[:, None, :2, 2]
+
+
+def initial_guess(capture: Capture, t_grid_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Robust triangulation at the grid times -> (joints (T, 17, 3), shape (16,), (root_orient, pose, transl) by IK)."""
+    uv, conf, Ts, Ks = interpolate_to_grid(capture, t_grid_ns)
+    X = median_in_time(fill_gaps(triangulate(uv, conf, Ts, Ks)))
+    if not np.all(np.isfinite(X)):
+        from reconstruction.capture import CaptureError
+
+        raise CaptureError("too few views to triangulate the person (need two cameras seeing each joint sometime)")
+    shape = sk.estimate_shape(X)
+    R_root, R_loc, transl = sk.inverse_kinematics(X, shape)
+    ro = Rotation.from_matrix(R_root).as_rotvec()
+    pose = Rotation.from_matrix(R_loc.reshape(-1, 3, 3)).as_rotvec().reshape(len(X), sk.NUM_POSE, 3)
+    return X, shape, (ro, pose, transl)
+
+
+def fit_capture(
+    capture: Capture,
+    t_grid_ns: np.ndarray,
+    cfg: FitConfig | None = None,
+    model: BodyModel | None = None,
+    prior: PosePrior | None = None,
+    progress: bool = True,
+) -> FitResult:
+    """Fit the body to a capture at output times ``t_grid_ns`` (T,) with ``cfg.method``."""
+    cfg = cfg or FitConfig()
+    model = model or SkeletonBodyModel()
+    prior = prior or load_default_prior()
+    fits = {"paper": _fit_paper, "product": _fit_product}
+    if cfg.method not in fits:
+        raise ValueError(f"unknown method {cfg.method!r}; use 'product' or 'paper'")
+    n_threads = torch.get_num_threads()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    try:
+        return fits[cfg.method](capture, np.asarray(t_grid_ns, dtype=np.int64), cfg, model, prior, progress)
+    finally:
+        torch.set_num_threads(n_threads)
+
+
+# ----------------------------------------------------------------------------------------- product
+def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
+    t_start = time.perf_counter()
+    dev = torch.device(cfg.device)
+    dt = torch.float32
+    model = model.to(dev)
+    prior = prior.to(dev)
+    _, shape0, (ro0, pose0, tr0) = initial_guess(capture, t_grid)
+    obs = gather(capture, t_grid, cfg.cam_smooth_window_s)
+    T = len(t_grid)
+    N = len(obs.t_ns)
+    f = lambda a: torch.as_tensor(np.asarray(a), dtype=dt, device=dev)  # noqa: E731
+    uv, conf = f(obs.uv), f(obs.conf)  # (N, D, 17, 2), (N, D, 17)
+    flip = list(COCO17_FLIP)
+    uv_sw, conf_sw = uv[:, :, flip], conf[:, :, flip]
+    K = f(obs.K)
+    R_est, p_est = f(obs.T_est[:, :3, :3]), f(obs.T_est[:, :3, 3])
+    # start the cameras on the time-smoothed drone track: corrections dw, dp relative to the drone's
+    dR0 = Rotation.from_matrix(obs.T_smooth[:, :3, :3] @ np.swapaxes(obs.T_est[:, :3, :3], -1, -2)).as_rotvec()
+    dp0 = obs.T_smooth[:, :3, 3] - obs.T_est[:, :3, 3]
+    k0 = torch.as_tensor(obs.k, device=dev)
+    a = f(obs.alpha)[:, None, None]
+    ps, rs = f(np.maximum(obs.pos_sigma_m, 1e-3)), f(np.maximum(obs.rot_sigma_rad, 1e-4))
+    fps = (T - 1) / ((t_grid[-1] - t_grid[0]) * 1e-9)
+
+    ro = f(ro0).requires_grad_()
+    pose = f(pose0).requires_grad_()
+    tr = f(tr0).requires_grad_()
+    shape = f(shape0).requires_grad_()
+    dw = f(dR0).requires_grad_()
+    dp = f(dp0).requires_grad_()
+    params = [ro, pose, tr, shape] + ([dw, dp] if cfg.refine_cameras else [])
+    # consecutive frames of the same camera (for camera smoothness)
+    nxt = [(s.start, s.stop) for s in obs.cam_slices if s.stop - s.start >= 3]
+    tn = f((obs.t_ns - obs.t_ns.min()) * 1e-9)
+    noise2 = cfg.expected_noise_px**2
+
+    def cam_poses():
+        R = _rotvec_to_R(dw) @ R_est
+        return R, p_est + dp
+
+    def energy(sig: float) -> torch.Tensor:
+        X = model(ro, pose, tr, shape)  # (T, 17, 3)
+        Xo = (1 - a) * X[k0] + a * X[k0 + 1]  # (N, 17, 3) at the frames' capture times
+        R, p = cam_poses()
+        pix = _project(Xo, R, p, K)  # (N, 17, 2)
+        e2 = ((pix[:, None] - uv) ** 2).sum(-1)  # (N, D, 17)
+        cost = (conf * _gm(e2, sig)).sum(-1)
+        if cfg.swap_robust:
+            e2s = ((pix[:, None] - uv_sw) ** 2).sum(-1)
+            cost = torch.minimum(cost, (conf_sw * _gm(e2s, sig)).sum(-1))
+        E_data = cost.sum() / noise2 * 0.5
+        E_prior = cfg.w_pose_prior * prior.energy(pose).sum() + cfg.w_limits * prior.limit_penalty(pose).sum()
+        E_shape = cfg.w_shape * model.shape_energy(shape)
+        Xs = model(ro, pose, tr, shape.detach())  # smoothness must not shrink the skeleton
+        acc = (Xs[2:] - 2 * Xs[1:-1] + Xs[:-2]) * fps * fps
+        E_smooth = 0.5 * (acc**2).sum() / cfg.accel_sigma_mps2**2
+        E_cam = torch.zeros((), device=dev)
+        if cfg.refine_cameras:
+            E_cam = cfg.w_cam_prior * 0.5 * (
+                _gm((dp**2).sum(-1) / ps**2, 9.0).sum() + _gm((dw**2).sum(-1) / rs**2, 9.0).sum()
+            )
+            for s0, s1 in nxt:
+                tt = tn[s0:s1]
+                h0 = (tt[1:-1] - tt[:-2]).clamp(min=1e-3)[:, None]
+                h1 = (tt[2:] - tt[1:-1]).clamp(min=1e-3)[:, None]
+                pp = p[s0:s1]
+                ap = ((pp[2:] - pp[1:-1]) / h1 - (pp[1:-1] - pp[:-2]) / h0) / (0.5 * (h0 + h1))
+                RR = R[s0:s1].reshape(-1, 9)
+                ar = ((RR[2:] - RR[1:-1]) / h1 - (RR[1:-1] - RR[:-2]) / h0) / (0.5 * (h0 + h1))
+                E_cam = E_cam + 0.5 * (ap**2).sum() / cfg.cam_accel_sigma_mps2**2 + 0.25 * (ar**2).sum() / cfg.cam_ang_accel_sigma_radps2**2
+        return (E_data + E_prior + E_shape + E_smooth + E_cam) / T
+
+    groups = [{"params": [ro, pose], "lr": cfg.lr}, {"params": [tr], "lr": cfg.lr * 0.5}, {"params": [shape], "lr": cfg.lr * 0.25}]
+    if cfg.refine_cameras:
+        groups += [{"params": [dw], "lr": cfg.lr * 0.25}, {"params": [dp], "lr": cfg.lr}]
+    opt = torch.optim.Adam(groups)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups], total_steps=cfg.iters, pct_start=0.15)
+    bar = tqdm(range(cfg.iters), desc="fit (product)", disable=not progress, leave=False)
+    for i in bar:
+        # robust scale annealed from sigma_px_start to sigma_px_end over the first 60 % of the steps
+        sig = cfg.sigma_px_end + (cfg.sigma_px_start - cfg.sigma_px_end) * max(0.0, 1 - i / (0.6 * cfg.iters))
+        opt.zero_grad(set_to_none=True)
+        E = energy(sig)
+        E.backward()
+        opt.step()
+        sched.step()
+        if progress and i % 25 == 0:
+            bar.set_postfix(E=f"{E.item():.2f}")
+    with torch.no_grad():
+        X = model(ro.double(), pose.double(), tr.double(), shape.double())  # float64: exports match exactly
+        R, p = cam_poses()
+    T_ref = np.tile(np.eye(4), (N, 1, 1))
+    T_ref[:, :3, :3] = R.double().cpu().numpy()
+    T_ref[:, :3, 3] = p.double().cpu().numpy()
+    return FitResult(
+        t_ns=t_grid, joints_ned=X.double().cpu().numpy(), root_orient=ro.detach().double().cpu().numpy(),
+        pose=pose.detach().double().cpu().numpy(), transl=tr.detach().double().cpu().numpy(),
+        shape=shape.detach().double().cpu().numpy(), cam_index=obs.cam, cam_t_ns=obs.t_ns,
+        T_world_cam_refined=T_ref, T_world_cam_drone=obs.T_est, fit_seconds=time.perf_counter() - t_start, method="product",
+    )  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------- paper
+def _fit_paper(capture, t_grid, cfg, model, prior, progress) -> FitResult:
+    t_start = time.perf_counter()
+    dev = torch.device(cfg.device)
+    dt = torch.float32
+    model = model.to(dev)
+    prior = prior.to(dev)
+    # first frame's start: robust triangulation of the first few output times (like AirCap's online estimate)
+    n_init = min(len(t_grid), 5)
+    _, shape0, (ro0, pose0, tr0) = initial_guess(capture, t_grid[: max(n_init, 2)])
+    f = lambda a: torch.as_tensor(np.asarray(a), dtype=dt, device=dev)  # noqa: E731
+    C = capture.num_cameras
+    D = max(c.num_detectors for c in capture.cameras)
+    ro = f(ro0[:1]).clone()
+    pose = f(pose0[:1]).clone()
+    tr = f(tr0[:1]).clone()
+    shape = f(shape0[None]).clone()
+    s1, s2 = cfg.sigma1_px, cfg.sigma2
+    out_X, out_ro, out_pose, out_tr, out_shape = [], [], [], [], []
+    cam_idx, cam_t, T_ref, T_dr = [], [], [], []
+    it = tqdm(range(len(t_grid)), desc="fit (paper)", disable=not progress, leave=False)
+    for ti in it:
+        t = t_grid[ti]
+        uv = np.zeros((C, D, 17, 2))
+        cf = np.zeros((C, D, 17))
+        Rt, pt, Kt = np.zeros((C, 3, 3)), np.zeros((C, 3)), np.zeros((C, 3, 3))
+        for ci, c in enumerate(capture.cameras):
+            fi = int(np.argmin(np.abs(c.t_frame_ns - t)))  # nearest frame in time
+            uv[ci, : c.num_detectors] = c.keypoints_px[fi]
+            cf[ci, : c.num_detectors] = c.confidence[fi]
+            Tc = c.pose_at(c.t_frame_ns[fi])[0]
+            Rt[ci], pt[ci], Kt[ci] = Tc[:3, :3], Tc[:3, 3], c.K_at(c.t_frame_ns[fi])[0]
+            cam_idx.append(ci)
+            cam_t.append(int(c.t_frame_ns[fi]))
+            T_dr.append(Tc)
+        r_tilde = f(Rotation.from_matrix(Rt).as_rotvec())
+        p_tilde = f(pt)
+        uv_t, cf_t, K_t = f(uv), f(cf), f(Kt)
+        r = r_tilde.clone().requires_grad_()
+        p = p_tilde.clone().requires_grad_()
+        for v in (ro, pose, tr, shape):
+            v.requires_grad_()
+        first = ti == 0
+        n_it, lr = (cfg.paper_first_iters, cfg.paper_first_lr) if first else (cfg.paper_iters, cfg.paper_lr)
+        opt = torch.optim.Adam([ro, pose, tr, shape, r, p], lr=lr)
+        for _ in range(n_it):
+            opt.zero_grad(set_to_none=True)
+            X = model(ro, pose, tr, shape[0])  # (1, 17, 3)
+            pix = _project(X.expand(C, -1, -1), _rotvec_to_R(r), p, K_t)  # (C, 17, 2)
+            e2 = ((pix[:, None] - uv_t) ** 2).sum(-1)
+            E2d = (cf_t * e2 / (e2 + s1 * s1)).sum()
+            er2 = (torch.rad2deg(r - r_tilde) ** 2).sum(-1)  # degrees
+            ep2 = ((100.0 * (p - p_tilde)) ** 2).sum(-1)  # centimetres
+            Erp = (er2 / (er2 + s2 * s2) + ep2 / (ep2 + s2 * s2)).sum()
+            E = E2d + cfg.paper_w_cam * Erp + cfg.paper_w_pose * prior.energy(pose).sum() + cfg.paper_w_shape * model.shape_energy(shape[0])
+            E.backward()
+            opt.step()
+        with torch.no_grad():
+            out_X.append(model(ro.double(), pose.double(), tr.double(), shape[0].double())[0].cpu().numpy())
+            out_ro.append(ro[0].double().cpu().numpy())
+            out_pose.append(pose[0].double().cpu().numpy())
+            out_tr.append(tr[0].double().cpu().numpy())
+            out_shape.append(shape[0].double().cpu().numpy())
+            Rr = _rotvec_to_R(r).double().cpu().numpy()
+            for ci in range(C):
+                Tm = np.eye(4)
+                Tm[:3, :3], Tm[:3, 3] = Rr[ci], p[ci].double().cpu().numpy()
+                T_ref.append(Tm)
+        ro, pose, tr, shape = (v.detach() for v in (ro, pose, tr, shape))
+    return FitResult(
+        t_ns=t_grid, joints_ned=np.array(out_X), root_orient=np.array(out_ro), pose=np.array(out_pose),
+        transl=np.array(out_tr), shape=np.median(np.array(out_shape), 0), cam_index=np.array(cam_idx),
+        cam_t_ns=np.array(cam_t, dtype=np.int64), T_world_cam_refined=np.array(T_ref), T_world_cam_drone=np.array(T_dr),
+        fit_seconds=time.perf_counter() - t_start, method="paper",
+    )  # fmt: skip
