@@ -123,6 +123,7 @@ class Agent:
         #: latest positions of the other drones {drone_id: (position_ned_m, monotonic receive time)}
         self.neighbours: dict[str, tuple[tuple[float, float, float], float]] = {}
         self._separation_warned = False
+        self._gimbal_sent: tuple[float, float] | None = None
         self.acks: list[CommandAck] = []  # for tests and the health report
         autopilot.on_state = self._on_state
 
@@ -298,10 +299,26 @@ class Agent:
                     self.rates["setpoint"].tick()
                 except Exception as e:
                     log.warning("%s: setpoint failed: %s", self.id, e)
+                else:
+                    await self._point_gimbal(sp)
             delay = t_next - time.monotonic()
             if delay < -period:
                 t_next = time.monotonic()  # fell behind: do not burst
             await asyncio.sleep(max(0.0, delay))
+
+    async def _point_gimbal(self, sp: Setpoint) -> None:
+        """Send the setpoint's camera pitch to the gimbal at <= 2 Hz when it moved by > 0.5 deg."""
+        if sp.gimbal_pitch_rad is None:
+            return
+        now = time.monotonic()
+        last = self._gimbal_sent
+        if last is not None and (now - last[0] < 0.5 or abs(sp.gimbal_pitch_rad - last[1]) < math.radians(0.5)):
+            return
+        self._gimbal_sent = (now, sp.gimbal_pitch_rad)
+        try:
+            await self.autopilot.set_gimbal_pitch(sp.gimbal_pitch_rad)
+        except Exception as e:
+            log.warning("%s: gimbal command failed: %s", self.id, e)
 
     async def supervisor_loop(self) -> None:
         period = 0.1

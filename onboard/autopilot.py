@@ -71,6 +71,10 @@ class MavsdkAutopilot:
         self.last_state: VehicleState | None = None
         self._seq = 0
         self.offboard_active = False
+        self._gimbal = None
+        self._gimbal_id: int | None = None
+        self._gimbal_next_check_s = 0.0
+        self._gimbal_warned = False
 
     # --- connection ----------------------------------------------------------------------------------
     async def connect(self, url: str, timeout_s: float = 30.0) -> None:
@@ -243,6 +247,36 @@ class MavsdkAutopilot:
             VelocityNedYaw(float(v[0]), float(v[1]), float(v[2]), yaw_deg),
             AccelerationNed(float(a[0]), float(a[1]), float(a[2])),
         )
+
+    async def set_gimbal_pitch(self, pitch_rad: float) -> bool:
+        """Point the camera gimbal (MAVLink gimbal protocol v2 via MAVSDK) to ``pitch_rad`` (negative = down),
+        yaw following the vehicle. False when the vehicle has no gimbal (checked at most every 5 s): the
+        camera then keeps its mount's pitch."""
+        if self._gimbal_id is None:
+            now = time.monotonic()
+            if now < self._gimbal_next_check_s:
+                return False
+            self._gimbal_next_check_s = now + 5.0
+            if not await self._system.has_gimbal():
+                if not self._gimbal_warned:
+                    log.info("%s: no gimbal discovered: the camera keeps its mount pitch", self.drone_id)
+                    self._gimbal_warned = True
+                return False
+            from mavsdk.asyncio.plugins.gimbal import ControlMode, GimbalAsync
+
+            self._gimbal = GimbalAsync(self._system)
+            gimbals = (await self._gimbal.gimbal_list()).gimbals
+            if not gimbals:
+                return False
+            gid = gimbals[0].gimbal_id
+            await self._gimbal.take_control(gid, ControlMode.PRIMARY)
+            self._gimbal_id = gid
+            log.info("%s: controlling gimbal %d", self.drone_id, gid)
+        from mavsdk.asyncio.plugins.gimbal import GimbalMode, SendMode
+
+        await self._gimbal.set_angles(self._gimbal_id, 0.0, math.degrees(pitch_rad), 0.0, GimbalMode.YAW_FOLLOW,
+                                      SendMode.ONCE)
+        return True
 
     async def start_offboard(self) -> None:
         """Switch to offboard; a setpoint must have been streamed first (PX4 requirement)."""
