@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "tracking"))
 
-from onboard.formation.mpc import FormationMPC, MpcConfig  # noqa: E402
+from onboard.formation.mpc import FormationMPC, MpcConfig, SharedPlan  # noqa: E402
 from onboard.formation.slots import assign_slot_angles  # noqa: E402
 from onboard.tracking.filter import CooperativeFilter  # noqa: E402
 from onboard.tracking.measurement import box_from_person, measurement_from_box  # noqa: E402
@@ -97,7 +97,8 @@ def bench_mpc(n: int, solver: str, separation: str, steps: int) -> dict:
     p = np.array([[-14.0, 4.0 * (k - (n - 1) / 2), -6.0] for k in range(n)])
     v = np.zeros((n, 3))
     angles = assign_slot_angles(ids, np.zeros(3), {i: p[k] for k, i in enumerate(ids)})
-    plans = {}
+    # before the first plans arrive, teammates are known by their state (as the agent will do)
+    plans = {i: SharedPlan.from_state(i, 0, p[k], v[k], cfg.dt_s, cfg.horizon_steps) for k, i in enumerate(ids)}
     times, totals = [], []
     fallbacks = 0
     dmin = np.inf

@@ -104,6 +104,7 @@ class MpcConfig:
     separation: Literal["bvc", "nonconvex"] = "bvc"  #: "nonconvex": hard |p_k - q_jk| >= d_min (IPOPT only)
     max_solve_time_s: float = 0.05  #: later than this -> fallback (the result is not used)
     max_iter: int = 4000
+    solver_margin_m: float = 0.03  #: added to separation and keep-outs: first-order solvers stop at ~1e-3..1e-2
 
     def __post_init__(self):
         if self.horizon_steps < 2 or not self.dt_s > 0:
@@ -219,7 +220,7 @@ class FormationMPC:
         self.last_status = "not run"
         c = config
         self.N = c.horizon_steps
-        fence = self._fence_halfspaces(c.geofence_ne_m, c.geofence_margin_m)
+        fence = self._fence_halfspaces(c.geofence_ne_m, c.geofence_margin_m + c.solver_margin_m)
         self._fence = fence  # (E, 2) normals (pointing inside), (E,) offsets: n . p_ne >= h
         self.L = c.max_teammates + 1 + len(c.obstacles) + len(fence[1])
         self._build()
@@ -440,7 +441,12 @@ class FormationMPC:
                 sgn = 1.0 if self.drone_id == a else -1.0
                 n[~ok] = sgn * np.array([math.cos(ang), math.sin(ang), 0.0])
             hn[row] = n
-            hh[row] = np.einsum("ij,ij->i", n, 0.5 * (prev_shared + q)) + 0.5 * c.min_separation_m
+            # old plans closer than d_min (first step, after a fallback, a teammate's from_state plan): ask
+            # only for the separation that can be regained by step k (keeps the problem feasible; the pair
+            # computes the same offsets); old plans >= d_min apart give the plain buffered Voronoi cells
+            regain = _reach(t_steps_s, 0.0, c.max_speed_h_m_s, c.max_accel_h_m_s2)
+            off = 0.5 * np.minimum(c.min_separation_m + c.solver_margin_m, dist + regain)
+            hh[row] = np.einsum("ij,ij->i", n, 0.5 * (prev_shared + q)) + off
             row += 1
         row = c.max_teammates
         # the person keep-out (horizontal tangent plane about the previous plan)
@@ -449,7 +455,7 @@ class FormationMPC:
         dn = np.linalg.norm(dpn, axis=1)
         n2 = np.where(dn[:, None] < 1e-3, slot_dir, dpn / np.maximum(dn, 1e-3)[:, None])  # right above: leave toward the slot
         hn[row, :, :2] = n2
-        hh[row] = np.einsum("ij,ij->i", n2, person_k[:, :2]) + c.person_keepout_m
+        hh[row] = np.einsum("ij,ij->i", n2, person_k[:, :2]) + c.person_keepout_m + c.solver_margin_m
         row += 1
         for ob in c.obstacles:
             cen = np.array([ob.north_m, ob.east_m])
@@ -457,7 +463,7 @@ class FormationMPC:
             dd = np.linalg.norm(d2, axis=1)
             n2 = np.where(dd[:, None] < 1e-3, slot_dir, d2 / np.maximum(dd, 1e-3)[:, None])
             hn[row, :, :2] = n2
-            hh[row] = n2 @ cen + ob.radius_m + c.obstacle_margin_m
+            hh[row] = n2 @ cen + ob.radius_m + c.obstacle_margin_m + c.solver_margin_m
             row += 1
         fn, fh = self._fence
         for e in range(len(fh)):
@@ -560,7 +566,7 @@ class FormationMPC:
         fn, fh = self._fence
         if len(fh) == 0:
             return float("inf")
-        d = np.atleast_2d(positions_ned_m)[:, :2] @ fn.T - (fh - self.cfg.geofence_margin_m)
+        d = np.atleast_2d(positions_ned_m)[:, :2] @ fn.T - (fh - self.cfg.geofence_margin_m - self.cfg.solver_margin_m)
         return float(d.min())
 
     def _warm_start(self, p0: np.ndarray, v0: np.ndarray) -> np.ndarray:

@@ -33,6 +33,7 @@ class FormationSource:
         self.plan_timeout_s = float(plan_timeout_s)
         self._target: tuple[np.ndarray, np.ndarray] | None = None
         self._plans: dict[str, SharedPlan] = {}
+        self._states: dict[str, SharedPlan] = {}
         self.hold_position_ned_m: np.ndarray | None = None
         self.last_result: MpcResult | None = None
 
@@ -52,6 +53,13 @@ class FormationSource:
         if plan.drone_id != self.mpc.drone_id:
             self._plans[plan.drone_id] = plan
 
+    def set_teammate_state(self, drone_id: str, t_ns: int, position_ned_m, velocity_ned_m_s) -> None:
+        """A teammate's reported state; used (as a constant-velocity plan) while no fresh plan of it is known,
+        e.g. at start-up, so that it is avoided from the first step."""
+        if drone_id != self.mpc.drone_id:
+            c = self.mpc.cfg
+            self._states[drone_id] = SharedPlan.from_state(drone_id, t_ns, position_ned_m, velocity_ned_m_s, c.dt_s, c.horizon_steps)
+
     def hold(self, position_ned_m=None) -> None:
         """Hold (failsafe): at position_ned_m, or None to resume formation flight."""
         self.hold_position_ned_m = None if position_ned_m is None else np.asarray(position_ned_m, dtype=float).copy()
@@ -68,6 +76,8 @@ class FormationSource:
             return Setpoint(hold_at.copy(), np.zeros(3), float(yaw))
         fresh = {i: pl for i, pl in self._plans.items() if (t_ns - pl.t0_ns) * 1e-9 <= self.plan_timeout_s}
         self._plans = fresh
+        self._states = {i: st for i, st in self._states.items() if (t_ns - st.t0_ns) * 1e-9 <= self.plan_timeout_s}
+        fresh = {**self._states, **fresh}  # a plan, where known, replaces the state
         r = self.mpc.step(t_ns, p, velocity_ned_m_s, self._target[0], self._target[1], self.slot_angle_rad, fresh, self.ground_down_m)
         self.last_result = r
         accel = (r.plan_velocities_ned_m_s[1] - r.plan_velocities_ned_m_s[0]) / self.mpc.cfg.dt_s

@@ -12,7 +12,8 @@ def fly(mpcs, p, v, person_fn, angles, steps, dt_ns=int(1e8)):
     """Lockstep closed loop: every drone plans against the others' plans of the previous step and then
     flies its setpoint exactly. Returns positions (steps + 1, n, 3), velocities and results."""
     ids = list(mpcs)
-    plans = {}
+    # before the first plans arrive, teammates are known by their state (as the agent does)
+    plans = {i: SharedPlan.from_state(i, 0, p[k], v[k], 0.1, 15) for k, i in enumerate(ids)}
     P, V, R = [p.copy()], [v.copy()], []
     for s in range(steps):
         t = s * dt_ns
@@ -52,7 +53,7 @@ def test_three_drones_same_slot_keep_separation_and_limits():
     mpcs = {i: FormationMPC(i, cfg) for i in ids}
     p = np.array([[-10.0, -6.0, -8.0], [-10.0, 0.0, -8.0], [-10.0, 6.0, -8.0]])
     P, V, R = fly(mpcs, p, np.zeros((3, 3)), still, {i: math.pi for i in ids}, 80)
-    assert pairwise_min(P) >= 3.0 - 0.05
+    assert pairwise_min(P) >= 3.0 - 0.01
     # they did converge toward the common slot (crowding around it)
     assert all(np.linalg.norm(P[-1, k, :2] - [-8.0, 0.0]) < 4.5 for k in range(3))
     vh = np.linalg.norm(V[:, :, :2], axis=2)
@@ -70,7 +71,7 @@ def test_ipopt_nonconvex_variant_keeps_separation():
     mpcs = {i: FormationMPC(i, cfg) for i in ids}
     p = np.array([[-10.0, -6.0, -8.0], [-10.0, 0.0, -8.0], [-10.0, 6.0, -8.0]])
     P, V, R = fly(mpcs, p, np.zeros((3, 3)), still, {i: math.pi for i in ids}, 30)
-    assert pairwise_min(P) >= 3.0 - 0.05
+    assert pairwise_min(P) >= 3.0 - 0.01
     # both sides avoid each other's old plan at the full distance: crowding makes it (locally) infeasible
     # now and then -> brake fallbacks; the buffered-Voronoi QP has none here (test above)
     assert sum(m.fallback_count for m in mpcs.values()) <= 9
@@ -83,7 +84,7 @@ def test_head_on_swap_keeps_separation():
     p = np.array([[8.0, 0.0, -8.0], [-8.0, 0.0, -8.0]])
     # slots swapped: they must pass each other around the person
     P, V, R = fly(mpcs, p, np.zeros((2, 3)), still, {"a": math.pi, "b": 0.0}, 120)
-    assert pairwise_min(P) >= 3.0 - 0.05
+    assert pairwise_min(P) >= 3.0 - 0.01
     assert np.min(np.linalg.norm(P[:, :, :2], axis=2)) >= 4.0 - 0.05  # person keep-out
     np.testing.assert_allclose(P[-1, 0, :2], [-8.0, 0.0], atol=0.5)
 

@@ -17,6 +17,7 @@ def test_formation_source_follows_target_and_holds():
     src.set_target([0.0, 0.0, -0.85], [0.0, 0.0, 0.0])
     src.set_teammate_plan(SharedPlan("d1", int(1000e9), 0.1, np.tile([[-8.0, 0.0, -8.0]], (16, 1))))
     src.set_teammate_plan(SharedPlan("d2", int(990e9), 0.1, np.tile([[0.0, 3.0, -8.0]], (16, 1))))  # stale: dropped
+    src.set_teammate_state("d3", int(1000e9), [5.0, 5.0, -8.0], [0.0, 0.0, 0.0])  # known by state only
     t = 1000.0
     for _ in range(60):
         sp = src.update(t, p, v, 0.0)
@@ -24,6 +25,7 @@ def test_formation_source_follows_target_and_holds():
         t += 0.1
     np.testing.assert_allclose(p, [0.0, 8.0, -8.0], atol=0.2)
     assert src.mpc.fallback_count == 0
+    assert src.last_result.min_teammate_distance_m == np.inf  # d3's state expired after plan_timeout_s
     assert abs(sp.yaw_rad + math.pi / 2) < 0.05 and sp.gimbal_pitch_rad < 0
     assert src.last_plan is not None and src.last_plan.drone_id == "d0" and src.last_plan.positions_ned_m.shape == (16, 3)
     src.hold([1.0, 2.0, -8.0])
