@@ -11,7 +11,7 @@ first land command): ``orbit_radius_rmse_m``, ``altitude_rmse_m``, ``phase_error
 the centre minus the slot angle, so including a lag common to the fleet) and
 ``phase_spacing_error_deg_rms`` (the same with the fleet's mean error at each instant removed: how well
 the spacing is kept); ``orbit_radius_rmse_est_m`` / ``altitude_rmse_est_m`` are the same errors against the
-vehicle's own recorded estimate (the control's tracking; the gap to the truth errors is the autopilot's
+vehicle's own recorded estimate, and ``phase_error_est_deg_rms`` (the control's tracking; the gap to the truth errors is the autopilot's
 estimation error, e.g. a GPS bias, which the agent cannot see). Fleet-wide: ``min_separation_m`` (closest approach of two drones over the whole
 flight, truth), ``flight_s`` (first take-off to last touch-down, truth above ``airborne_alt_m``).
 
@@ -165,6 +165,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
             **{k: round(v, 3) for k, v in errs[d].items()},
             "orbit_radius_rmse_est_m": round(est.get("orbit_radius_rmse_m", math.nan), 3),
             "altitude_rmse_est_m": round(est.get("altitude_rmse_m", math.nan), 3),
+            "phase_error_est_deg_rms": round(est.get("phase_error_deg_rms", math.nan), 3),
             "frames_recorded": int(len(ft)),
             "image_rate_hz": round(float((len(ft) - 1) / (ft[-1] - ft[0])) if len(ft) > 1 else 0.0, 2),
             "state_rate_hz": round(float(len(in_orbit) / (t_end - t_start)), 2),
@@ -187,14 +188,14 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
 
 def format_table(summary: dict) -> str:
     cols = ["setpoint_rate_hz", "orbit_radius_rmse_m", "altitude_rmse_m", "phase_error_deg_rms",
-            "phase_spacing_error_deg_rms", "orbit_radius_rmse_est_m", "altitude_rmse_est_m", "frames_recorded",
+            "phase_spacing_error_deg_rms", "orbit_radius_rmse_est_m", "altitude_rmse_est_m", "phase_error_est_deg_rms", "frames_recorded",
             "image_rate_hz", "state_rate_hz"]
-    short = ["setpt_hz", "radius_m", "alt_m", "phase_deg", "spacing_deg", "radius_est_m", "alt_est_m", "frames",
+    short = ["setpt_hz", "radius_m", "alt_m", "phase_deg", "spacing_deg", "radius_est_m", "alt_est_m", "phase_est_deg", "frames",
              "img_hz", "state_hz"]
     lines = ["errors are RMS against the true trajectory (radius_m, alt_m, phase) and the vehicle's estimate (*_est_m)",
-             "drone     " + "".join(f"{s:>13s}" for s in short)]
+             "drone     " + "".join(f"{s:>14s}" for s in short)]
     for d, row in summary["drones"].items():
-        lines.append(f"{d:10s}" + "".join(f"{row[c]:>13.3f}" if isinstance(row[c], float) else f"{row[c]:>13d}"
+        lines.append(f"{d:10s}" + "".join(f"{row[c]:>14.3f}" if isinstance(row[c], float) else f"{row[c]:>14d}"
                                           for c in cols))
     f = summary["fleet"]
     lines.append(f"fleet: min_separation_m={f['min_separation_m']:.2f} (configured {f['configured_min_separation_m']}), "
