@@ -123,15 +123,17 @@ class FlightLog:
             yield LogMessage(channel.topic, msg, rec.data, rec.log_time, rec.publish_time, rec.sequence, tag)
 
     def read_topic(self, topic: str, expected: type[M] | None = None) -> list[M]:
-        """All decoded messages of one topic; ``expected`` checks their type (FlightLogError otherwise)."""
+        """All decoded messages of one topic in log-time order (also for crash-truncated files);
+        ``expected`` checks their type (FlightLogError otherwise)."""
         out = []
         for m in self.messages([topic]):
             if expected is not None and not isinstance(m.msg, expected):
                 raise FlightLogError(
                     f"{self.path}: topic {topic!r} holds {type(m.msg).__name__}, expected {expected.__name__}"
                 )
-            out.append(m.msg)
-        return out
+            out.append((m.log_time_ns, m.msg))
+        out.sort(key=lambda x: x[0])  # stable: equal times keep file order
+        return [msg for _, msg in out]
 
     def topic_counts(self) -> dict[str, int]:
         """Number of messages per topic (from the summary when finalised, else by reading)."""

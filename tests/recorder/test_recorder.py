@@ -157,3 +157,15 @@ def test_log_cli_info_and_recover(tmp_path, capsys) -> None:
     assert FlightLog(tmp_path / "fixed.mcap").finalised
     d = flightlog.describe(tmp_path / "fixed.mcap")
     assert d["topics"] == {"state": 10} and d["t_last_ns"] - d["t_first_ns"] == 9 * 10**8
+
+
+def test_read_topic_is_in_log_time_order_even_when_truncated(tmp_path) -> None:
+    path = tmp_path / "o.mcap"
+    with Recorder(path) as rec:
+        for i, t in enumerate([5, 3, 4, 1, 2], start=1):  # recorded out of log-time order
+            rec.record("state", encode(state(i, t)), log_time_ns=t)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) - 30])
+    for p in (path, cut):
+        assert [s.header.seq for s in FlightLog(p).read_topic("state")] == [4, 5, 2, 3, 1]
