@@ -21,7 +21,7 @@ from simulator.scene.body import PARTS, Ellipsoids, body_ellipsoids
 
 PART_INDEX = {name: i for i, (name, _) in enumerate(PARTS)}
 from simulator.scene.config import CameraConfig
-from skycap.frames import R_body_cam, invert_T, make_T
+from skycap.frames import T_world_cam_from_pose, invert_T
 
 __all__ = [
     "PinholeCamera", "camera_pose", "R_world_body_from_q", "GtProjection", "project_person", "ellipsoid_boxes",
@@ -95,16 +95,15 @@ def camera_pose(
     pitched by ``cfg.pitch_deg`` relative to it. The lever arm turns with the body in both cases.
     """
     R_wb = R_world_body_from_q(q_world_body_wxyz)
-    t = np.asarray(position_ned_m, dtype=float) + R_wb @ np.asarray(cfg.lever_arm_body_m, dtype=float)
+    lever = np.asarray(cfg.lever_arm_body_m, dtype=float)
     if cfg.mount == "gimbal":
         yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])
         c, s = math.cos(yaw), math.sin(yaw)
         R_yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         pitch = math.radians(cfg.pitch_deg) if gimbal_pitch_rad is None else float(gimbal_pitch_rad)
-        R_wc = R_yaw @ R_body_cam(pitch)
-    else:
-        R_wc = R_wb @ R_body_cam(math.radians(cfg.pitch_deg))
-    return make_T(R_wc, t)
+        position_cam = np.asarray(position_ned_m, dtype=float) + R_wb @ lever
+        return T_world_cam_from_pose(position_cam, R_yaw, gimbal_pitch_rad=pitch)
+    return T_world_cam_from_pose(position_ned_m, R_wb, math.radians(cfg.pitch_deg), lever_arm_body_m=lever)
 
 
 def ellipsoid_boxes(cam: PinholeCamera, ell_cam: Ellipsoids, near_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
