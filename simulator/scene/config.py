@@ -47,6 +47,9 @@ class PersonConfig:
     loop: bool = True
     #: walking clip (a "loop" clip) and idle clip (played while standing)
     walk_motion: str = "walk"
+    #: walk faster or slower than the recorded clip: the clip's cadence and the path speed scale together
+    #: (stride length kept, so the feet do not slide); 1 = as recorded (1.35 m/s for the built-in walk)
+    walk_speed_scale: float = 1.0
     #: cross-fade between walking and a stop's motion, seconds
     blend_s: float = 0.4
     #: time over which the heading turns to a new path direction at a waypoint, seconds
@@ -73,6 +76,8 @@ class PersonConfig:
                 )
             if s.duration_s < 0:
                 raise ConfigError(f"person.stops duration_s={s.duration_s} must be >= 0 (0 = the clip's length)")
+        if not 0.3 <= self.walk_speed_scale <= 2.0:
+            raise ConfigError(f"person.walk_speed_scale={self.walk_speed_scale} must be in 0.3..2 (a walk, not a run)")
         if self.blend_s < 0 or self.turn_s < 0:
             raise ConfigError("person.blend_s and person.turn_s must be >= 0")
         for name in ("shirt_bgr", "trousers_bgr", "skin_bgr", "shoes_bgr", "hair_bgr"):

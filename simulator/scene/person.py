@@ -235,6 +235,8 @@ class PersonSim:
         self.walk = load_clip(self.cfg.walk_motion, self.cfg.motions_dir)
         if self.walk.mode != "loop" or self.walk.speed_m_s <= 0:
             raise PersonError(f"walk_motion {self.cfg.walk_motion!r} must be a 'loop' clip with a speed > 0")
+        #: walking speed along the path: the clip's own speed times walk_speed_scale (the cadence scales too)
+        self.walk_speed_m_s = self.walk.speed_m_s * self.cfg.walk_speed_scale
         self.segments: list[_Segment] = []
         self.period_s = 0.0
         self.period_dist_m = 0.0
@@ -268,7 +270,7 @@ class PersonSim:
                 if L < 1e-6:
                     continue
                 h_cur = headings[i]
-                dur = L / self.walk.speed_m_s
+                dur = L / self.walk_speed_m_s
                 self.segments.append(_Segment("walk", t, t + dur, h_cur, p0, p1, dist0=dist))
                 t += dur
                 dist += L
@@ -292,7 +294,8 @@ class PersonSim:
             dur = seg.t1 - seg.t0
             s = min(max(t - seg.t0, 0.0), dur) / dur if dur > 0 else 1.0
             anchor = seg.p0 + s * (seg.p1 - seg.p0)
-            phase_t = (seg.dist0 + k * self.period_dist_m) / self.walk.speed_m_s + (t - seg.t0)
+            # gait phase from the distance walked (stride length kept), stepping on in place past the end
+            phase_t = (seg.dist0 + k * self.period_dist_m) / self.walk.speed_m_s + (t - seg.t0) * self.cfg.walk_speed_scale
             return self.walk.sample(phase_t), anchor, seg.heading
         clip = seg.clip
         assert clip is not None

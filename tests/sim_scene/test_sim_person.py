@@ -71,6 +71,19 @@ def test_root_follows_waypoints_at_walking_speed(person):
         assert abs(math.remainder(h - math.atan2(d[1], d[0]), 2 * math.pi)) < 0.05
 
 
+def test_walk_speed_scale_scales_path_speed_and_cadence():
+    base = PersonSim(PersonConfig(stops=[], waypoints_ne_m=[[0, 0], [20, 0]], loop=False))
+    fast = PersonSim(PersonConfig(stops=[], waypoints_ne_m=[[0, 0], [20, 0]], loop=False, walk_speed_scale=1.3))
+    for p, scale in ((base, 1.0), (fast, 1.3)):
+        ts = np.linspace(1.0, 5.0, 30)
+        n = [p.state_at(t).root_ned_m[0] for t in ts]
+        assert np.polyfit(ts, n, 1)[0] == pytest.approx(p.walk.speed_m_s * scale, rel=0.03)
+    # same pose at the same walked distance (stride kept): at distance 5 m both are in the same gait phase
+    a = base.state_at(5.0 / base.walk_speed_m_s).joints_ned_m
+    b = fast.state_at(5.0 / fast.walk_speed_m_s).joints_ned_m
+    assert np.abs(a - b).max() < 0.02
+
+
 def test_starts_at_first_waypoint_and_visits_all(person):
     wps = np.array(person.cfg.waypoints_ne_m)
     r0 = person.state_at(0.0).root_ned_m[:2]
