@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from simulator.scene.camera import camera_pose
 from simulator.scene.camera_node import CameraNode, CameraTruth
 from simulator.scene.config import CameraConfig, SceneConfig
 from simulator.scene.person import PersonSim
@@ -74,8 +75,6 @@ def main(argv: list[str] | None = None) -> int:
         for i in range(args.frames + 3):
             state["t"] = 0.37 * i
             ct = truth()
-            from simulator.scene.camera import camera_pose
-
             T = camera_pose(cfg.camera, ct.position_ned_m, ct.q_world_body, ct.gimbal_pitch_rad)
             fr = node.renderer.render(T, ct.person_joints_ned_m)
             t0 = time.perf_counter()
