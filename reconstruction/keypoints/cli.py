@@ -9,7 +9,7 @@ from skycap.config import add_config_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from reconstruction.keypoints.detectors import DEFAULT_MODELS, KEYPOINT_MODELS
+    from reconstruction.keypoints import DEFAULT_MODELS, KEYPOINT_MODELS
 
     p = sub.add_parser(
         "keypoints",

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from onboard.detector.modelfile import ThreadSettings, open_session, resolve_model
+from reconstruction.keypoints import DEFAULT_MODELS, KEYPOINT_MODELS  # re-exported here
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
@@ -40,9 +41,6 @@ MODELS_DIR = Path(__file__).resolve().parent / "models"
 
 #: BlazePose 33-landmark index for each COCO-17 keypoint, in COCO-17 order.
 BLAZEPOSE_TO_COCO17: tuple[int, ...] = (0, 2, 5, 7, 8, 11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28)
-
-KEYPOINT_MODELS: tuple[str, ...] = ("movenet_lightning", "movenet_thunder", "blazepose_full")
-DEFAULT_MODELS: tuple[str, ...] = ("movenet_thunder", "blazepose_full")
 
 
 class KeypointInputError(SkycapError, ValueError):
