@@ -111,7 +111,10 @@ class BatteryConfig:
     idle_drain_pct_per_min: float = 0.05
     cells: int = 4
     capacity_mah: float = 5000.0
-    #: below this the autopilot triggers Return (PX4 BAT_CRIT_THR-like), 0 disables
+    #: below this a warning STATUSTEXT is sent (PX4 BAT_LOW_THR), 0 disables
+    low_percent: float = 15.0
+    #: below this arming is denied and a flying vehicle returns home (PX4 BAT_CRIT_THR with
+    #: COM_LOW_BAT_ACT = Return), 0 disables
     critical_percent: float = 7.0
 
 

@@ -39,10 +39,14 @@ OFFBOARD_LOSS_ACTIONS = {"hold": 5, "land": 4}  # PX4 COM_OBL_RC_ACT values
 
 @dataclass
 class VehicleTruth:
-    """Ground truth of one vehicle at one instant (world NED). Shapes: (3,), (3,), (3,3)."""
+    """Ground truth of one vehicle at one instant, world NED frame (plus what the autopilot believes).
+
+    Shapes: positions/velocities/accelerations (3,), rotations (3,3) body FRD -> world NED.
+    """
 
     index: int
     system_id: int
+    #: wall-clock time of the tick (``time.time_ns()``)
     t_ns: int
     position_ned_m: np.ndarray
     velocity_ned_m_s: np.ndarray
@@ -50,6 +54,14 @@ class VehicleTruth:
     armed: bool
     flight_mode: str
     landed: bool
+    #: seconds since the simulation started (the MAVLink ``time_boot_ms`` clock)
+    t_sim_s: float = 0.0
+    accel_ned_m_s2: np.ndarray | None = None
+    angular_velocity_body_rad_s: np.ndarray | None = None
+    #: the vehicle's own estimate (what it reports over MAVLink), in the world frame
+    est_position_ned_m: np.ndarray | None = None
+    est_R_world_body: np.ndarray | None = None
+    battery_percent: float = 100.0
 
 
 def yaw_from_R(R: np.ndarray) -> float:
@@ -115,6 +127,7 @@ def default_params(cfg: SimConfig, system_id: int) -> list[Param]:
         Param("COM_OBL_RC_ACT", OFFBOARD_LOSS_ACTIONS[F.offboard_loss_action], INT),
         Param("COM_DISARM_LAND", F.disarm_after_land_s, R),
         Param("COM_DISARM_PRFLT", F.disarm_preflight_s, R),
+        Param("BAT_LOW_THR", cfg.battery.low_percent / 100.0, R),
         Param("BAT_CRIT_THR", cfg.battery.critical_percent / 100.0, R),
         Param("MAV_SYS_ID", system_id, INT),
         Param("SYS_AUTOSTART", 4001, INT),  # x500-class quadrotor airframe
@@ -180,6 +193,7 @@ class SimVehicle:
         self._offboard_sp: Setpoint | None = None
         self._offboard_sp_t_s = -math.inf
         self._battery_failsafe_done = False
+        self._battery_low_warned = False
         self._update_estimate()
 
     # ------------------------------------------------------------------ parameters
@@ -218,6 +232,12 @@ class SimVehicle:
             armed=self.armed,
             flight_mode=self.mode.name,
             landed=s.on_ground,
+            t_sim_s=self.t_s,
+            accel_ned_m_s2=s.accel_ned_m_s2.copy(),
+            angular_velocity_body_rad_s=s.angular_velocity_body_rad_s.copy(),
+            est_position_ned_m=self.est_position_ned_m.copy(),
+            est_R_world_body=self.est_R_world_body.copy(),
+            battery_percent=self.battery.remaining_pct,
         )
 
     def _update_estimate(self) -> None:
@@ -464,7 +484,11 @@ class SimVehicle:
             act = int(self.params["COM_OBL_RC_ACT"])
             self._say(4, "Failsafe: no offboard signal")
             self._set_mode(FlightMode.LAND if act == 4 else FlightMode.HOLD)
-        # battery failsafe
+        # battery failsafe: warn at BAT_LOW_THR, return (or land without home) at BAT_CRIT_THR
+        low = float(self.params["BAT_LOW_THR"]) * 100.0
+        if not self._battery_low_warned and low > 0 and self.battery.remaining_pct <= low:
+            self._battery_low_warned = True
+            self._say(4, f"Low battery: {self.battery.remaining_pct:.0f}% remaining")
         if not self._battery_failsafe_done and self._battery_critical() and not landed:
             self._battery_failsafe_done = True
             self._say(2, "Failsafe: battery critical, returning")

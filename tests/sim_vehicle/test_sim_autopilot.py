@@ -136,7 +136,8 @@ def test_low_battery_denies_arming_and_triggers_return_in_flight():
     v = airborne(cfg=cfg)
     assert v.battery.remaining_pct > 7.0
     fast_forward(v, 6.0)
-    assert v.mode in (FlightMode.RETURN,) and any("battery" in t for _, t in v.status_texts)
+    assert v.mode in (FlightMode.RETURN,) and any("battery critical" in t for _, t in v.status_texts)
+    assert any("Low battery" in t for _, t in v.status_texts)
 
 
 def test_preflight_auto_disarm():
