@@ -400,7 +400,10 @@ class FormationMPC:
         delta = (slot_angle_rad - phi0 + math.pi) % (2 * math.pi) - math.pi
         omega = c.slot_approach_speed_m_s / c.radius_m
         ang_k = phi0 + np.sign(delta) * np.minimum(abs(delta), omega * t_steps_s)
-        ref_p = np.stack([slot_reference(person_k[k], ang_k[k], c.radius_m, c.altitude_m, ground_down_m)[0] for k in range(N)])
+        ref_p = person_k.copy()
+        ref_p[:, 0] += c.radius_m * np.cos(ang_k)
+        ref_p[:, 1] += c.radius_m * np.sin(ang_k)
+        ref_p[:, 2] = ground_down_m - c.altitude_m
         ref_v = person_vel_k.copy()
         ref_v[:, 2] = 0.0
 
