@@ -242,11 +242,14 @@ class PersonDetector:
             varis.append(var * stride**2)
         if not boxes:
             return np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros((0, 4), np.float32)
-        b = np.concatenate(boxes) / scale
+        h, w = patch_bgr.shape[:2]
+        s = np.array([rw / w, rh / h, rw / w, rh / h], np.float32)  # exact per-axis resize factors
+        b = np.concatenate(boxes) / s
         # clip to the real (unpadded) patch
-        b[:, [0, 2]] = np.clip(b[:, [0, 2]], 0, rw / scale)
-        b[:, [1, 3]] = np.clip(b[:, [1, 3]], 0, rh / scale)
-        v = np.concatenate(varis) / scale**2 + (1.0 / 12.0) / scale**2
+        b[:, [0, 2]] = np.clip(b[:, [0, 2]], 0, w)
+        b[:, [1, 3]] = np.clip(b[:, [1, 3]], 0, h)
+        # model variance plus the quantisation of one model-input pixel (1/12 px^2 there), in patch px^2
+        v = (np.concatenate(varis) + 1.0 / 12.0) / s**2
         return b, np.concatenate(scores), v
 
     # --- modes ---------------------------------------------------------------------------------------
