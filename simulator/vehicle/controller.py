@@ -104,6 +104,16 @@ class PositionController:
             z = np.asarray(sp.body_z_cmd, float)
             self.reset(velocity_ned_m_s)
             return z / np.linalg.norm(z), float(np.clip(sp.thrust_m_s2, 0.0, lim.max_thrust_m_s2)), yaw_rate
+        if (
+            np.isnan(sp.position_ned_m).all()
+            and np.isnan(sp.velocity_ned_m_s).all()
+            and not np.isnan(sp.accel_ned_m_s2).all()
+        ):  # acceleration-only setpoint (MAVSDK set_acceleration_ned): open loop through the thrust vector
+            self.reset(velocity_ned_m_s)
+            acc = np.nan_to_num(sp.accel_ned_m_s2)
+            if landed:
+                acc[:2] = 0.0
+            return (*self.thrust_from_accel(acc), yaw_rate)
 
         vmax_xy = (
             lim.max_speed_xy_m_s if math.isnan(sp.max_speed_xy_m_s) else min(sp.max_speed_xy_m_s, lim.max_speed_xy_m_s)

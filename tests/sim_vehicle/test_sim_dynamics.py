@@ -131,3 +131,11 @@ def test_attitude_from_thrust_axis_and_yaw_is_a_rotation_with_that_heading():
         assert np.linalg.det(R2) == pytest.approx(1.0)
         np.testing.assert_allclose(R2[:, 2], R[:, 2], atol=1e-12)
         np.testing.assert_allclose(R2, R, atol=1e-9)  # same tilt + same heading = same attitude (ZYX)
+
+
+def test_acceleration_only_setpoint_is_flown_open_loop():
+    dyn, ctrl = make()
+    fly(dyn, ctrl, Setpoint(accel_ned_m_s2=np.array([1.0, 0.0, 0.0])), 3.0)
+    v = dyn.state.velocity_ned_m_s
+    # 1 m/s^2 forward against linear drag 0.25/s: v = 4 (1 - exp(-0.25 t)) ~ 2.1 m/s after 3 s
+    assert v[0] == pytest.approx(4.0 * (1 - math.exp(-0.75)), abs=0.2) and abs(v[2]) < 0.05
