@@ -124,6 +124,7 @@ class Agent:
         self.neighbours: dict[str, tuple[tuple[float, float, float], float]] = {}
         self._separation_warned = False
         self._gimbal_sent: tuple[float, float] | None = None
+        self._resumes: list[float] = []
         self.acks: list[CommandAck] = []  # for tests and the health report
         autopilot.on_state = self._on_state
 
@@ -347,6 +348,7 @@ class Agent:
             if self.mission.state == State.LANDED:
                 self.source = None
         fs = self.cfg.safety
+        self._check_offboard(T["flight_mode"])
         if self.mission.airborne:
             silent = time.monotonic() - self.t_last_gcs_s
             if silent > fs.gcs_heartbeat_timeout_s:
@@ -354,6 +356,38 @@ class Agent:
             if T["battery_frac"] < fs.low_battery_frac:
                 self._failsafe(f"low battery {100 * T['battery_frac']:.0f}%", fs.low_battery_action)
             self._check_separation(pos)
+
+    def _check_offboard(self, mode: str) -> None:
+        """Notice the autopilot leaving offboard under us (failsafe or pilot) and follow or resume."""
+        ap = self.autopilot
+        if not ap.offboard_active or mode == "OFFBOARD" or time.monotonic() - ap.offboard_since_s < 2.0:
+            return
+        now = time.monotonic()
+        self._resumes = [t for t in self._resumes if now - t < 60.0]
+        may_resume = len(self._resumes) < self.cfg.safety.offboard_resumes_per_min and self.source is not None \
+            and self.rates["setpoint"].rate_hz() >= 0.5 * self.cfg.rates.setpoint_hz
+        before = self.mission.state
+        tr = self.mission.offboard_lost(mode, may_resume)
+        reason = f"autopilot left offboard for {mode}"
+        if tr.action == Action.RESUME_OFFBOARD:
+            self._resumes.append(now)
+            log.warning("%s: %s: switching back to offboard (%d in the last minute)", self.id, reason, len(self._resumes))
+            self.warnings.append(reason + ", resumed")
+            ap.offboard_since_s = now  # no second attempt before this one had time
+
+            async def resume():
+                try:
+                    await ap.start_offboard()
+                except Exception as e:
+                    log.error("%s: resuming offboard failed: %s", self.id, e)
+
+            self._spawn(resume(), "resume_offboard")
+            return
+        ap.offboard_active = False
+        if self.mission.state != before or tr.state in (State.PAUSED, State.LANDING, State.RETURNING):
+            log.warning("%s: %s: %s -> %s", self.id, reason, before.value, self.mission.state.value)
+            self.warnings.append(reason)
+            self.source = None
 
     def _check_separation(self, pos) -> None:
         plan = self.mission.plan

@@ -71,6 +71,7 @@ class MavsdkAutopilot:
         self.last_state: VehicleState | None = None
         self._seq = 0
         self.offboard_active = False
+        self.offboard_since_s = 0.0
         self._gimbal = None
         self._gimbal_id: int | None = None
         self._gimbal_next_check_s = 0.0
@@ -282,6 +283,7 @@ class MavsdkAutopilot:
         """Switch to offboard; a setpoint must have been streamed first (PX4 requirement)."""
         await self._do("offboard start", self.offboard.start())
         self.offboard_active = True
+        self.offboard_since_s = time.monotonic()
 
     async def _leave_offboard(self) -> None:
         self.offboard_active = False

@@ -44,6 +44,9 @@ class SafetyConfig:
     sigterm_land_timeout_s: float = 20.0
     #: another drone closer than the plan's min_separation_m while airborne: "hold", "land" or "warn"
     separation_action: str = "hold"
+    #: when PX4 drops offboard to HOLD (setpoint stream stalled), switch back this many times per minute
+    #: at most (0: never; then the drone pauses until the operator sends start again)
+    offboard_resumes_per_min: int = 3
     #: plan altitude band (metres above ground)
     min_altitude_m: float = 2.0
     max_altitude_m: float = 60.0

@@ -54,6 +54,7 @@ class Action(str, Enum):
     RETURN = "return"
     HOLD = "hold"  # autopilot Hold (leave offboard)
     DISARM = "disarm"
+    RESUME_OFFBOARD = "resume_offboard"  # the autopilot dropped offboard (stream loss): switch back
 
 
 def message_age_s(t_sent_ns: int, now_ns: int) -> float:
@@ -217,6 +218,24 @@ class Mission:
         if s in (State.HOVER, State.ORBIT, State.PAUSED) and not in_air and not armed:
             return self._go(State.LANDED, Action.NONE)  # landed by someone else (RC, autopilot failsafe)
         return Transition(s, Action.NONE)
+
+    def offboard_lost(self, mode: str, may_resume: bool) -> Transition:
+        """The autopilot left offboard while we fly the orbit (or hold in offboard).
+
+        ``mode`` is the autopilot's new mode (MAVSDK name). HOLD is PX4's offboard-loss failsafe (our stream
+        stalled): resume when ``may_resume``. LAND / RETURN_TO_LAUNCH are followed. Any other mode means a
+        pilot took control: pause and leave the vehicle to them until the operator sends ``start``.
+        """
+        s = self.state
+        if s not in (State.ORBIT, State.PAUSED):
+            return Transition(s, Action.NONE)
+        if mode == "LAND":
+            return self._go(State.LANDING, Action.NONE)
+        if mode == "RETURN_TO_LAUNCH":
+            return self._go(State.RETURNING, Action.NONE)
+        if mode == "HOLD" and may_resume:
+            return Transition(s, Action.RESUME_OFFBOARD)
+        return self._go(State.PAUSED, Action.NONE)
 
     def trigger_failsafe(self, reason: str, action: str) -> Transition:
         """Ground-station loss, low battery, shutdown: ``action`` in land/return/hold, once airborne."""

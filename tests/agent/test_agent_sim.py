@@ -155,3 +155,28 @@ def test_agent_holds_when_another_drone_comes_too_close(flight):
     assert fl.wait_state("drone_1", "paused", 3), fl.log("drone_1")
     assert "separation: drone_9" in fl.log("drone_1")
     assert fl.fleet.wait_until(lambda f: f.states["drone_1"].flight_mode == "HOLD", 3)
+
+
+def test_agent_resumes_offboard_after_a_stalled_stream(flight):
+    """A frozen companion computer (SIGSTOP): PX4's offboard-loss failsafe holds; the agent, running again,
+    notices and switches back to offboard; the orbit goes on."""
+    import os
+
+    fl = flight(1)
+    proc = fl.start_agent(0)
+    _hover(fl)
+    home = fl.truth()
+    plan = make_orbit_plan(["drone_1"], (home[0] + 4.0, home[1], 0.0), radius_m=4.0, altitude_m=4.0,
+                           angular_speed_rad_s=0.3)
+    fl.fleet.send_plan(plan)
+    assert fl.fleet.wait_acks(plan.plan_id, ["drone_1"], 5)["drone_1"].result == "accepted"
+    assert fl.fleet.command("start", wait_s=10, expect=["drone_1"], results=("completed",))["drone_1"]
+    time.sleep(3.0)
+    os.kill(proc.pid, signal.SIGSTOP)
+    try:
+        assert fl.fleet.wait_until(lambda f: fl.world.vehicles[0].mode.name == "HOLD", 5), "no offboard failsafe"
+    finally:
+        os.kill(proc.pid, signal.SIGCONT)
+    assert fl.fleet.wait_until(lambda f: fl.world.vehicles[0].mode.name == "OFFBOARD", 10), fl.log("drone_1")
+    assert "switching back to offboard" in fl.log("drone_1")
+    assert fl.agent_state("drone_1") == "orbit"

@@ -107,3 +107,21 @@ def test_closest_neighbour_ignores_stale_reports():
     assert closest_neighbour((0.0, 0.0, 0.0), others, now_s=10.5) == ("drone_2", 5.0)
     assert closest_neighbour((0.0, 0.0, 0.0), others, now_s=10.5, max_age_s=10.0) == ("drone_3", 1.0)
     assert closest_neighbour((0.0, 0.0, 0.0), others, now_s=30.0) is None
+
+
+def test_offboard_lost_resume_follow_or_pause():
+    def orbiting():
+        m = Mission()
+        m.command("takeoff"); m.vehicle(True, True, True); m.set_plan(plan()); m.command("start")
+        return m
+
+    assert orbiting().offboard_lost("HOLD", may_resume=True).action == Action.RESUME_OFFBOARD
+    m = orbiting()
+    assert m.offboard_lost("HOLD", may_resume=False).state == State.PAUSED  # resume budget spent
+    m = orbiting()
+    assert m.offboard_lost("POSCTL", may_resume=True).state == State.PAUSED  # a pilot took over
+    assert m.command("start").action == Action.START_ORBIT  # the operator resumes
+    assert orbiting().offboard_lost("LAND", True).state == State.LANDING
+    assert orbiting().offboard_lost("RETURN_TO_LAUNCH", True).state == State.RETURNING
+    idle = Mission()
+    assert idle.offboard_lost("HOLD", True).action == Action.NONE
