@@ -179,7 +179,9 @@ class SimVehicle:
         self.mode = FlightMode.HOLD
         self.gps_ok = False
         self.home_ned_m: np.ndarray | None = None  # world frame (estimate), set at GPS fix and on arming
-        self.status_texts: list[tuple[int, str]] = []  # (MAV_SEVERITY, text) for the endpoint to send
+        #: recent (MAV_SEVERITY, text) messages, newest last (each MAVLink link sends the ones it has not sent)
+        self.status_texts: list[tuple[int, str]] = []
+        self.status_count = 0  # how many were ever said
         self._armed_at_s = 0.0
         self._has_flown = False
         self._landed_since_s: float | None = 0.0
@@ -272,6 +274,9 @@ class SimVehicle:
     def _say(self, severity: int, text: str) -> None:
         log.info("vehicle %d: %s", self.system_id, text)
         self.status_texts.append((severity, text))
+        self.status_count += 1
+        if len(self.status_texts) > 200:
+            del self.status_texts[:100]
 
     # ------------------------------------------------------------------ commands (return MAV_RESULT)
     def cmd_arm(self, arm: bool, force: bool = False) -> int:

@@ -141,6 +141,7 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         self._next_due = {name: 0.0 for name in STREAMS}
         self.sent_counts = {name: 0 for name in STREAMS}
         self.received_counts: dict[str, int] = {}
+        self._texts_sent = vehicle.status_count
         self.command_log: list[tuple[int, int]] = []  # (MAV_CMD, MAV_RESULT) of every command answered
         self._last_partner_log = 0.0
 
@@ -190,8 +191,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
                 self.send_stream(name)
                 nd = due + period
                 self._next_due[name] = nd if nd > t_s else t_s + period
-        while v.status_texts:
-            sev, text = v.status_texts.pop(0)
+        new = min(v.status_count - self._texts_sent, len(v.status_texts))
+        self._texts_sent = v.status_count
+        for sev, text in v.status_texts[len(v.status_texts) - new :] if new > 0 else ():
             self.mav.send(self.mav.statustext_encode(sev, text.encode()[:50]))
 
     def send_stream(self, name: str) -> bool:

@@ -130,12 +130,18 @@ def test_ground_station_link_gets_every_vehicle_on_one_port(sim_world_factory):
     cfg.vehicles.count = 2
     cfg.ports.gcs_port = free_udp_port()
     cfg.ports.gcs_local_base = 0
-    sim_world_factory(cfg)
     gcs = RawClient(cfg.ports.gcs_port)
+    api = RawClient(cfg.ports.offboard_base)
+    sim_world_factory(cfg)
     try:
         msgs = gcs.recv(2.5)
+        api_msgs = api.recv(0.5)
     finally:
         gcs.close()
+        api.close()
+    # status texts go out on every link
+    for ms in (msgs, api_msgs):
+        assert any(m.get_type() == "STATUSTEXT" and "GPS fix" in m.text and m.get_srcSystem() == 1 for m in ms)
     heartbeats = {m.get_srcSystem() for m in msgs if m.get_type() == "HEARTBEAT"}
     assert heartbeats == {1, 2}
     att = sum(m.get_type() == "ATTITUDE" and m.get_srcSystem() == 1 for m in msgs)
