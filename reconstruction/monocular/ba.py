@@ -84,37 +84,40 @@ class _Problem:
         self.R_prior = R_prior
 
     # ----- smooth part in S (R, t, L fixed) -----
-    def f_S(self, S, R, t, L):
+    def f_S(self, S, R, t, L, grad: bool = False):
+        """Smooth part of F as a function of S; with ``grad`` also its gradient (projected on centred poses)."""
         E = self.W - R @ S - t[..., None]
-        val = np.einsum("tij,tj->", E * E, self.w)
-        if self.cfg.gamma > 0:
-            d = S @ self.inc.T
-            D = np.sum(d * d, axis=1).T - L
-            val += self.cfg.gamma * np.sum(D * D)
-        if self.cfg.smooth_S > 0:
-            val += self.cfg.smooth_S * np.sum((S[1:] - S[:-1]) ** 2)
-        return float(val)
-
-    def grad_S(self, S, R, t, L):
-        E = self.W - R @ S - t[..., None]
-        g = -2.0 * np.swapaxes(R, 1, 2) @ (E * self.w[:, None, :])
+        Ew = E * self.w[:, None, :]
+        val = float(np.sum(E * Ew))
+        g = -2.0 * np.swapaxes(R, 1, 2) @ Ew if grad else None
         if self.cfg.gamma > 0:
             d = S @ self.inc.T  # (T,3,nL) limb vectors
             D = np.sum(d * d, axis=1).T - L  # (nL, T)
-            g += (4.0 * self.cfg.gamma * d * D.T[:, None, :]) @ self.inc
+            val += self.cfg.gamma * float(np.sum(D * D))
+            if grad:
+                g += (4.0 * self.cfg.gamma * d * D.T[:, None, :]) @ self.inc
         if self.cfg.smooth_S > 0:
             dS = S[1:] - S[:-1]
-            gs = np.zeros_like(S)
-            gs[1:] += 2 * self.cfg.smooth_S * dS
-            gs[:-1] -= 2 * self.cfg.smooth_S * dS
-            g += gs
-        return g - g.mean(axis=2, keepdims=True)  # stay on the centred subspace
+            val += self.cfg.smooth_S * float(np.sum(dS * dS))
+            if grad:
+                g[1:] += 2 * self.cfg.smooth_S * dS
+                g[:-1] -= 2 * self.cfg.smooth_S * dS
+        if not grad:
+            return val
+        return val, g - g.mean(axis=2, keepdims=True)  # stay on the centred subspace
+
+    def grad_S(self, S, R, t, L):
+        return self.f_S(S, R, t, L, grad=True)[1]
 
     def nuclear(self, S):
-        return float(np.linalg.svd(S.reshape(self.T, -1), compute_uv=False).sum())
+        lam = np.linalg.eigvalsh(S.reshape(self.T, -1).T @ S.reshape(self.T, -1))
+        return float(np.sqrt(np.maximum(lam, 0.0)).sum())
 
-    def objective(self, S, R, t, L):
-        val = self.f_S(S, R, t, L) + self.alpha * self.nuclear(S)
+    def objective(self, S, R, t, L, nuc=None):
+        return self.f_S(S, R, t, L) + self.alpha * (self.nuclear(S) if nuc is None else nuc) + self.r_terms(R)
+
+    def r_terms(self, R):
+        val = 0.0
         if self.cfg.smooth_R > 0:
             val += self.cfg.smooth_R * float(np.sum((R[1:] - R[:-1]) ** 2))
         if self.cfg.rot_prior > 0 and self.R_prior is not None:
@@ -123,7 +126,7 @@ class _Problem:
 
     def prox(self, X, step):
         """SVT of S# with threshold alpha * step; returns (S, ||S#||_*)."""
-        Y, nn = svt(X.reshape(self.T, -1).T, self.alpha * step)
+        Y, nn = svt(X.reshape(self.T, -1).T, self.alpha * step, gram=True)
         return Y.T.reshape(X.shape), nn
 
     # ----- block updates -----
@@ -150,16 +153,17 @@ class _Problem:
                 R = stiefel_mm_step(R, A, C)
         return R
 
-    def update_S(self, S, R, t, L, mu):
-        """Monotone FISTA with backtracking on S. Returns S, mu."""
+    def update_S(self, S, R, t, L, mu, nuc):
+        """Monotone FISTA with backtracking on S (``nuc`` = ||S#||_*). Returns S, mu, ||S#||_*."""
         x_prev = S
         x = S
-        F_x = self.f_S(x, R, t, L) + self.alpha * self.nuclear(x)
         y = S
         tk = 1.0
+        F_x = None
         for _ in range(self.cfg.prox_iters):
-            fy = self.f_S(y, R, t, L)
-            gy = self.grad_S(y, R, t, L)
+            fy, gy = self.f_S(y, R, t, L, grad=True)
+            if F_x is None:
+                F_x = fy + self.alpha * nuc
             while True:
                 z, nn = self.prox(y - gy / mu, 1.0 / mu)
                 dz = z - y
@@ -170,14 +174,14 @@ class _Problem:
             F_z = fz + self.alpha * nn
             tn = 0.5 * (1 + np.sqrt(1 + 4 * tk * tk))
             if F_z <= F_x:
-                x_new, F_x = z, F_z
+                x_new, F_x, nuc = z, F_z, nn
             else:
                 x_new = x
             y = x_new + (tk / tn) * (z - x_new) + ((tk - 1) / tn) * (x_new - x)
             x_prev, x, tk = x, x_new, tn
             mu *= 0.9  # let the step grow again
         del x_prev
-        return x, mu
+        return x, mu, nuc, F_x
 
 
 def bundle_adjust(
@@ -216,7 +220,8 @@ def bundle_adjust(
     prob = _Problem(W, w, limbs, cfg, R_prior)
     t = prob.update_t(S, R)
     L = rank1_approx(squared_limb_lengths(S, prob.a, prob.b)) if cfg.gamma > 0 else np.zeros((len(prob.a), prob.T))
-    hist = [prob.objective(S, R, t, L)]
+    nuc = prob.nuclear(S)
+    hist = [prob.objective(S, R, t, L, nuc)]
     mu = 2.0 * float(w.max(initial=1.0)) + 1.0
     for it in range(cfg.outer_iters):
         if cfg.gamma > 0:
@@ -224,8 +229,8 @@ def bundle_adjust(
         t = prob.update_t(S, R)
         R = prob.update_R(S, R, t)
         t = prob.update_t(S, R)
-        S, mu = prob.update_S(S, R, t, L, mu)
-        hist.append(prob.objective(S, R, t, L))
+        S, mu, nuc, F_S = prob.update_S(S, R, t, L, mu, nuc)
+        hist.append(F_S + prob.r_terms(R))
         if hist[-2] - hist[-1] < cfg.tol * abs(hist[-2]):
             break
     log.debug("BA: %d outer iterations, F %.4g -> %.4g", len(hist) - 1, hist[0], hist[-1])

@@ -121,3 +121,32 @@ def _run_sweep(args) -> int:
               [("pa_mpjpe_mm_init", 8), ("pa_mpjpe_mm_ba", 8), ("pa_mpjpe_mm_ba_no_articulation", 10), ("pa_mpjpe_mm_ba_extended", 8)]))  # fmt: skip
     print(f"wrote {out / 'figure2.png'}")
     return 0
+
+
+# ----------------------------------------------------------------------------------- skycap reconstruct
+
+
+def add_reconstruct_args(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("monocular")
+    g.add_argument("--mono-camera", default=None, help="camera (drone) name to use (default: the first)")
+    g.add_argument("--mono-variant", choices=("paper", "extended"), default="extended",
+                   help="monocular BA: the paper's, or extended with the drone attitude prior (default)")  # fmt: skip
+    g.add_argument("--mono-body-radius-m", type=float, default=None,
+                   help="assumed RMS joint radius of the person, m (default: the dictionary mean pose's)")  # fmt: skip
+
+
+def reconstruct_flight(flight_dir: Path, args: argparse.Namespace) -> int:
+    """``skycap reconstruct FLIGHT_DIR --method monocular``: one drone's keypoints -> BVH/NPZ/CSV/RRD."""
+    import json
+
+    from reconstruction.multiview.flight import read_flight
+    from reconstruction.monocular.reconstruct import reconstruct_capture
+
+    cap = read_flight(flight_dir)
+    out = Path(getattr(args, "out", None) or Path(flight_dir) / "reconstruction_monocular")
+    summary = reconstruct_capture(
+        cap, out, camera=getattr(args, "mono_camera", None), variant=getattr(args, "mono_variant", "extended"),
+        body_rms_radius_m=getattr(args, "mono_body_radius_m", None),
+    )  # fmt: skip
+    print(json.dumps(summary, indent=2))
+    return 0

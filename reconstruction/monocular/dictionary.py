@@ -109,9 +109,15 @@ def canonicalize_poses(joints: np.ndarray) -> np.ndarray:
     Centred on the mean of the joints; x along right_hip -> left_hip... precisely: x = unit(left_hip -
     right_hip), y = "down" = unit(mid_hip - mid_shoulder) orthogonalised against x, z = x cross y.
     """
-    J = np.asarray(joints, dtype=float)
-    c = J.mean(axis=1, keepdims=True)
-    X = J - c
+    X = np.asarray(joints, dtype=float)
+    X = X - X.mean(axis=1, keepdims=True)
+    Rb = canonical_rotation(X)
+    return np.einsum("nij,nkj->nik", Rb, X)  # (N, 3, 17)
+
+
+def canonical_rotation(joints: np.ndarray) -> np.ndarray:
+    """Rotations (N, 3, 3) whose rows are the body axes (see :func:`canonicalize_poses`) of poses (N, 17, 3)."""
+    X = np.asarray(joints, dtype=float)
     x = X[:, COCO17["left_hip"]] - X[:, COCO17["right_hip"]]
     x /= np.linalg.norm(x, axis=-1, keepdims=True) + 1e-12
     mid_hip = 0.5 * (X[:, COCO17["left_hip"]] + X[:, COCO17["right_hip"]])
@@ -120,8 +126,7 @@ def canonicalize_poses(joints: np.ndarray) -> np.ndarray:
     y -= x * np.sum(x * y, -1, keepdims=True)
     y /= np.linalg.norm(y, axis=-1, keepdims=True) + 1e-12
     z = np.cross(x, y)
-    Rb = np.stack([x, y, z], axis=1)  # (N, 3, 3): rows are the body axes in world
-    return np.einsum("nij,nkj->nik", Rb, X)  # (N, 3, 17)
+    return np.stack([x, y, z], axis=1)  # (N, 3, 3): rows are the body axes in world
 
 
 def sparse_code(X: np.ndarray, D: np.ndarray, lam: float, iters: int = 200, C0: np.ndarray | None = None) -> np.ndarray:

@@ -25,15 +25,25 @@ __all__ = [
 ]
 
 
-def svt(X: np.ndarray, tau: float) -> tuple[np.ndarray, float]:
+def svt(X: np.ndarray, tau: float, gram: bool = False) -> tuple[np.ndarray, float]:
     """Singular value thresholding: argmin_Y 1/2 ||Y - X||_F^2 + tau ||Y||_*.
 
     Args:
         X: (m, n) matrix.
         tau: threshold >= 0.
+        gram: for m << n, use the eigen-decomposition of the (m, m) Gram matrix X X^T (about 5x faster
+            than the SVD for the 51 x 300 pose matrices; singular values below about 1e-8 of the largest
+            lose relative precision, which does not matter once they are thresholded).
     Returns:
         (Y (m, n), ||Y||_* ) — the shrunk matrix and its nuclear norm.
     """
+    if gram and X.shape[0] < X.shape[1]:
+        lam, U = np.linalg.eigh(X @ X.T)
+        s = np.sqrt(np.maximum(lam, 0.0))
+        keep = s > tau
+        ratio = np.where(keep, (s - tau) / np.where(keep, s, 1.0), 0.0)
+        Y = (U * ratio) @ (U.T @ X)
+        return Y, float(np.sum(np.where(keep, s - tau, 0.0)))
     U, s, Vt = np.linalg.svd(X, full_matrices=False)
     s = np.maximum(s - tau, 0.0)
     k = int(np.count_nonzero(s))

@@ -23,8 +23,8 @@ import dataclasses
 
 import numpy as np
 
-from reconstruction.monocular.dictionary import PoseDictionary
-from reconstruction.monocular.linalg import polar_2x3, prox_spectral_2x3, stiefel_mm_step
+from reconstruction.monocular.dictionary import PoseDictionary, canonical_rotation, sparse_code
+from reconstruction.monocular.linalg import complete_rotation, polar_2x3, prox_spectral_2x3, stiefel_mm_step
 
 __all__ = ["InitConfig", "InitResult", "initialise"]
 
@@ -40,6 +40,8 @@ class InitConfig:
     robust_rounds: int = 4  # IRLS refinement rounds after the convex start
     robust_sigma: float = 0.15  # Geman-McClure scale (normalised units: body RMS radius = 1)
     outlier_threshold: float = 0.35  # residual beyond which a joint is flagged an outlier
+    resolve_flips: bool = True  # second (depth-reflected) hypothesis per frame + temporal Viterbi choice
+    flip_pairwise_weight: float = 1.0  # weight of the temporal term vs the per-frame fit in the Viterbi
 
 
 @dataclasses.dataclass
@@ -138,6 +140,54 @@ def _refine(Wn, w, B, R, c, cfg: InitConfig):
     return R, t, c
 
 
+def _frame_costs(Wn, w, B, R, t, c, lam):
+    S = np.einsum("tk,kij->tij", c, B)
+    E = Wn - R @ S - t[..., None]
+    return np.einsum("tij,tj->t", E * E, w) + lam * np.abs(c).sum(-1), complete_rotation(R) @ S
+
+
+def _resolve_flips(Wn, w, B, R, t, c, cfg: InitConfig):
+    """Depth-reflection ambiguity of one orthographic view: build, per frame, the second interpretation
+    (the pose mirrored through the image plane, re-fitted to the dictionary and the 2D keypoints) and pick
+    one interpretation per frame by dynamic programming (Viterbi), trading each frame's fit (weighted
+    reprojection error + l1) against the change of the camera-frame pose between consecutive frames.
+    Returns R, t, c (T, ...)."""
+    T = Wn.shape[0]
+    K = B.shape[0]
+    S = np.einsum("tk,kij->tij", c, B)
+    Rb = complete_rotation(R)
+    F = np.diag([1.0, 1.0, -1.0])
+    S_ref = np.swapaxes(Rb, 1, 2) @ F @ Rb @ S  # same image, mirrored depth (canonical coordinates)
+    Q = canonical_rotation(np.swapaxes(S_ref, 1, 2))
+    S_B = Q @ S_ref
+    c_B = sparse_code(S_B.reshape(T, -1), B.reshape(K, -1), cfg.lam_refine, iters=100)
+    R_B = (Rb @ np.swapaxes(Q, 1, 2))[:, :2]
+    R_B, t_B, c_B = _refine(Wn, w, B, R_B, c_B, cfg)
+    u_A, P_A = _frame_costs(Wn, w, B, R, t, c, cfg.lam_refine)
+    u_B, P_B = _frame_costs(Wn, w, B, R_B, t_B, c_B, cfg.lam_refine)
+    unary = np.stack([u_A, u_B], 1)  # (T,2)
+    P = np.stack([P_A, P_B], 1)  # (T,2,3,J)
+    pair = np.sum((P[1:, :, None] - P[:-1, None, :]) ** 2, axis=(-1, -2))  # (T-1, 2, 2) [t, h_t, h_t-1]
+    # truncated: a cut (scene change, dropped frames) must not force a choice on its neighbours
+    cap = 10.0 * np.median(pair.min(axis=(1, 2))) + 1e-9
+    pair = np.minimum(pair, cap) * cfg.flip_pairwise_weight
+    cost = unary[0].copy()
+    back = np.zeros((T, 2), dtype=int)
+    for i in range(1, T):
+        tot = cost[None, :] + pair[i - 1]  # (h_t, h_t-1)
+        back[i] = np.argmin(tot, axis=1)
+        cost = unary[i] + tot[np.arange(2), back[i]]
+    h = np.zeros(T, dtype=int)
+    h[-1] = int(np.argmin(cost))
+    for i in range(T - 1, 0, -1):
+        h[i - 1] = back[i, h[i]]
+    pick = (h == 1)
+    R = np.where(pick[:, None, None], R_B, R)
+    t = np.where(pick[:, None], t_B, t)
+    c = np.where(pick[:, None], c_B, c)
+    return R, t, c
+
+
 def initialise(
     W_px: np.ndarray,
     confidence: np.ndarray | None,
@@ -177,6 +227,8 @@ def initialise(
         res = np.linalg.norm(Wn - (R @ np.einsum("tk,kij->tij", c, B) + t[..., None]), axis=1)  # (T,J)
         w = conf * (sigma**2 / (sigma**2 + res**2)) ** 2
         R, t, c = _refine(Wn, w, B, R, c, cfg)
+    if cfg.resolve_flips and T > 1:
+        R, t, c = _resolve_flips(Wn, w, B, R, t, c, cfg)
     res = np.linalg.norm(Wn - (R @ np.einsum("tk,kij->tij", c, B) + t[..., None]), axis=1)
     if dictionary.mean_pose is not None:
         # (R, c) and (-R, -c) project identically; keep the upright one (positive overlap with the mean pose)
