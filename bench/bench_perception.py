@@ -7,7 +7,9 @@ onboard case; goal >= 30 Hz on one core), the full tiled search of a 1920x1080 f
 and without the extra 90-degree pass), the whole frame scaled to 640 (full mode), and the keypoint
 latency per person crop for each model (crop + inference + mapping back; BlazePose includes its own
 pose-detector stage). Times are wall time after warm-up: minimum, median and 90th percentile (on a
-shared machine the minimum is the closest to the uncontended latency; the load average is printed).
+shared machine the minimum is the closest to the uncontended latency; the load average is printed) and
+the median CPU time of the process (summed over its threads; with one thread, the single-core cost
+even when other work shares the cores).
 The frame is shared/data/images/aerial/general_example.png when present, else a synthetic frame.
 """
 
@@ -44,16 +46,18 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} logical CPUs, {platform.system()} {platform.release()}, onnxruntime {ort.__version__}"
 
 
-def timeit(fn, repeats: int, warmup: int = 2) -> tuple[float, float, float]:
+def timeit(fn, repeats: int, warmup: int = 2) -> tuple[float, float, float, float]:
+    """(min, median, p90) of wall time and the median CPU time of this process (all its threads)."""
     for _ in range(warmup):
         fn()
-    ts = []
+    ts, cs = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t0)
+        cs.append(time.process_time() - c0)
     ts.sort()
-    return ts[0], statistics.median(ts), ts[min(len(ts) - 1, int(0.9 * len(ts)))]
+    return ts[0], statistics.median(ts), ts[min(len(ts) - 1, int(0.9 * len(ts)))], statistics.median(cs)
 
 
 def main() -> None:
@@ -76,26 +80,26 @@ def main() -> None:
     for th in args.threads:
         rows = []
         det = PersonDetector(DetectorConfig(threads=th))
-        mn, med, p90 = timeit(lambda: det.detect(frame, "roi", roi), args.repeats)
-        rows.append(("detector roi 320x320 (1 inference)", mn, med, p90))
+        mn, med, p90, cpu = timeit(lambda: det.detect(frame, "roi", roi), args.repeats)
+        rows.append(("detector roi 320x320 (1 inference)", mn, med, p90, cpu))
         reps = max(3, args.repeats // 10)
         r = det.detect(frame, "tiles")
-        mn, med, p90 = timeit(lambda: det.detect(frame, "tiles"), reps, warmup=1)
-        rows.append((f"detector tiles 1920x1080 ({r.inferences} inferences of 416x416)", mn, med, p90))
+        mn, med, p90, cpu = timeit(lambda: det.detect(frame, "tiles"), reps, warmup=1)
+        rows.append((f"detector tiles 1920x1080 ({r.inferences} inferences of 416x416)", mn, med, p90, cpu))
         det_up = PersonDetector(DetectorConfig(threads=th, tile_rotate_90=False))
         r = det_up.detect(frame, "tiles")
-        mn, med, p90 = timeit(lambda: det_up.detect(frame, "tiles"), reps, warmup=1)
-        rows.append((f"detector tiles, no 90-deg pass ({r.inferences} inferences)", mn, med, p90))
-        mn, med, p90 = timeit(lambda: det.detect(frame, "full"), args.repeats)
-        rows.append(("detector full frame at 640x360 (1 inference)", mn, med, p90))
+        mn, med, p90, cpu = timeit(lambda: det_up.detect(frame, "tiles"), reps, warmup=1)
+        rows.append((f"detector tiles, no 90-deg pass ({r.inferences} inferences)", mn, med, p90, cpu))
+        mn, med, p90, cpu = timeit(lambda: det.detect(frame, "full"), args.repeats)
+        rows.append(("detector full frame at 640x360 (1 inference)", mn, med, p90, cpu))
         for name in KEYPOINT_MODELS:
             m = load_model(name, threads=th)
-            mn, med, p90 = timeit(lambda: m.predict([frame], np.array([person_box])), args.repeats)
-            rows.append((f"keypoints {name} ({m.input_px}x{m.input_px}) per crop", mn, med, p90))
+            mn, med, p90, cpu = timeit(lambda: m.predict([frame], np.array([person_box])), args.repeats)
+            rows.append((f"keypoints {name} ({m.input_px}x{m.input_px}) per crop", mn, med, p90, cpu))
         print(f"\nintra-op threads: {th}")
-        print(f"{'what':62s} {'min ms':>8s} {'median ms':>10s} {'p90 ms':>8s} {'Hz (median)':>12s}")
-        for what, mn, med, p90 in rows:
-            print(f"{what:62s} {mn * 1e3:8.1f} {med * 1e3:10.1f} {p90 * 1e3:8.1f} {1.0 / med:12.1f}")
+        print(f"{'what':62s} {'min ms':>8s} {'median ms':>10s} {'p90 ms':>8s} {'Hz (median)':>12s} {'CPU ms':>8s}")
+        for what, mn, med, p90, cpu in rows:
+            print(f"{what:62s} {mn * 1e3:8.1f} {med * 1e3:10.1f} {p90 * 1e3:8.1f} {1.0 / med:12.1f} {cpu * 1e3:8.1f}")
 
 
 if __name__ == "__main__":
