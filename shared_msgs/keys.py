@@ -12,7 +12,9 @@ messages inside carry their own per-type schema version.
 | ``skycap/v1/<fleet>/<drone>/camera/image`` | CameraFrame | camera | drone-local (not needed by teammates) |
 | ``skycap/v1/<fleet>/<drone>/detections`` | Detections | agent | shared with teammates |
 | ``skycap/v1/<fleet>/<drone>/keypoints2d`` | Keypoints2D | detector | |
-| ``skycap/v1/<fleet>/<drone>/sim/keypoints2d`` | Keypoints2D (simulated=True) | simulator camera | |
+| ``skycap/v1/<fleet>/<drone>/sim/keypoints2d`` | Keypoints2D (simulated=True) | simulator camera | noisy GT, detector "sim_noisy_gt" |
+| ``skycap/v1/<fleet>/<drone>/sim/keypoints2d_gt`` | Keypoints2D (simulated=True) | simulator camera | exact projections, detector "ground_truth" |
+| ``skycap/v1/<fleet>/<drone>/sim/detections`` | Detections (mode "simulated") | simulator camera | simulated person boxes |
 | ``skycap/v1/<fleet>/<drone>/target`` | TargetEstimate | agent | |
 | ``skycap/v1/<fleet>/<drone>/ack`` | CommandAck | agent | answers to commands and plans |
 | ``skycap/v1/<fleet>/gcs/cmd`` | Command | ground station | ``target`` field selects drones |
@@ -92,6 +94,8 @@ CAMERA_IMAGE = "camera/image"
 DETECTIONS = "detections"
 KEYPOINTS2D = "keypoints2d"
 SIM_KEYPOINTS2D = "sim/keypoints2d"
+SIM_KEYPOINTS2D_GT = "sim/keypoints2d_gt"
+SIM_DETECTIONS = "sim/detections"
 TARGET = "target"
 ACK = "ack"
 CMD = "cmd"

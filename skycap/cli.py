@@ -19,7 +19,9 @@ from skycap import __version__
 COMMAND_MODULES = (
     "skycap.demo",
     "simulator.cli",
+    "simulator.scene.cli",
     "onboard.cli",
+    "onboard.flightlog",
     "onboard.detector.cli",
     "groundstation.cli",
     "reconstruction.cli",
@@ -39,7 +41,7 @@ def setup_logging(level: str = "INFO") -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="skycap", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="skycap", description="skycap: markerless human motion capture from a fleet of autonomous camera drones.")
     parser.add_argument("--version", action="version", version=f"skycap {__version__}")
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING or ERROR (default INFO)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

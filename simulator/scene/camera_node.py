@@ -56,8 +56,8 @@ log = logging.getLogger(__name__)
 __all__ = ["CameraTruth", "CameraNode", "truth_from_messages", "SIM_KEYPOINTS2D_GT", "SIM_DETECTIONS", "GT_DETECTOR"]
 
 #: Topic suffixes this node adds to :mod:`shared_msgs.keys` (proposed there as constants).
-SIM_KEYPOINTS2D_GT = "sim/keypoints2d_gt"
-SIM_DETECTIONS = "sim/detections"
+SIM_KEYPOINTS2D_GT = keys.SIM_KEYPOINTS2D_GT
+SIM_DETECTIONS = keys.SIM_DETECTIONS
 GT_DETECTOR = "ground_truth"
 
 
