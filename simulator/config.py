@@ -149,6 +149,8 @@ class RatesConfig:
     system_time_hz: float = 1.0
     #: EKF origin (sent on request by default, as PX4 does on the onboard link)
     gps_global_origin_hz: float = 0.0
+    #: ODOMETRY (local NED pose + body-frame velocity), off unless requested (MAVSDK set_rate_odometry)
+    odometry_hz: float = 0.0
 
 
 @dataclass

@@ -83,6 +83,7 @@ STREAMS = {
     "VFR_HUD": (M.MAVLINK_MSG_ID_VFR_HUD, "vfr_hud_hz"),
     "SYSTEM_TIME": (M.MAVLINK_MSG_ID_SYSTEM_TIME, "system_time_hz"),
     "GPS_GLOBAL_ORIGIN": (M.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, "gps_global_origin_hz"),
+    "ODOMETRY": (M.MAVLINK_MSG_ID_ODOMETRY, "odometry_hz"),
 }
 MSGID_TO_STREAM = {mid: name for name, (mid, _) in STREAMS.items()}
 #: rates of PX4's "normal" (ground-station) MAVLink instance
@@ -331,6 +332,17 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             msg = mav.vfr_hud_encode(gs, gs, hdg, thr, alt, -vel[2])
         elif name == "SYSTEM_TIME":
             msg = mav.system_time_encode(int(time.time() * 1e6), t_ms)
+        elif name == "ODOMETRY":
+            p = v.est_local_position_ned_m
+            R = v.est_R_world_body
+            vb = R.T @ v.est_velocity_ned_m_s  # body-frame velocity, as PX4 sends it
+            w = v.truth.angular_velocity_body_rad_s
+            nan21 = [math.nan] * 21
+            msg = mav.odometry_encode(
+                int(time.time() * 1e6), M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD, p[0], p[1], p[2],
+                list(quat_wxyz_from_R(R)), vb[0], vb[1], vb[2], w[0], w[1], w[2], nan21, nan21, 0,
+                M.MAV_ESTIMATOR_TYPE_GPS_INS, 100,
+            )  # fmt: skip
         elif name == "GPS_GLOBAL_ORIGIN":
             if not v.gps_ok:
                 return False

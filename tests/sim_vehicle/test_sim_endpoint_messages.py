@@ -113,6 +113,27 @@ def test_body_frame_velocity_is_rotated_by_heading():
     np.testing.assert_allclose(r.v.truth.velocity_ned_m_s, [0.0, 2.0, 0.0], atol=0.1)
 
 
+def test_odometry_on_request_has_body_frame_velocity():
+    r = Rig(vehicles__spawn_yaw_deg=90.0)
+    r.takeoff()
+    mask = 0b0000_1101_1100_0111
+    r.offboard(
+        lambda: r.client.set_position_target_local_ned_encode(
+            0, 1, 1, M.MAV_FRAME_LOCAL_NED, mask, 0, 0, 0, 0.0, 2.0, 0, 0, 0, 0, 0, 0
+        ),
+        4.0,
+    )
+    assert r.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ODOMETRY, 20_000) == M.MAV_RESULT_ACCEPTED
+    r.out.msgs.clear()
+    r.ep.tick(r.v.t_s)
+    odo = [m for m in r.out.msgs if m.get_type() == "ODOMETRY"]
+    assert len(odo) == 1
+    o = odo[0]
+    assert o.frame_id == M.MAV_FRAME_LOCAL_NED and o.child_frame_id == M.MAV_FRAME_BODY_FRD
+    assert o.vx == pytest.approx(2.0, abs=0.15) and abs(o.vy) < 0.15  # flying east, nose east: forward
+    np.testing.assert_allclose([o.x, o.y, o.z], r.v.est_local_position_ned_m, atol=1e-3)
+
+
 def test_global_position_target_relative_altitude():
     r = Rig()
     r.takeoff()
