@@ -25,7 +25,8 @@ def _hover(fl, drone="drone_1"):
 
 
 def test_agent_flies_orbit_refuses_bad_input_and_lands(flight):
-    fl = flight(1)
+    # a small estimator bias (RTK-like): the errors against the truth then measure the agent's control
+    fl = flight(1, ["estimator.pos_bias_std_xy_m=0.05", "estimator.pos_bias_std_z_m=0.05"])
     proc = fl.start_agent(0)
     _hover(fl)
     home = fl.truth()
