@@ -516,8 +516,8 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
                 [0] * 8,
                 [0] * 8,
                 [0] * 8,
-                0x26AC,
-                0x0011,
+                0,  # vendor id (PX4 SITL: none)
+                0,  # product id
                 0x534B590000000000 + sid,
             )
         )
