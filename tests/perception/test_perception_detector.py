@@ -167,3 +167,14 @@ def test_two_threads_give_the_same_detections(general) -> None:
     assert len(a.detections) == len(b.detections)
     for x, y in zip(a.detections, b.detections):
         assert x.x_min_px == pytest.approx(y.x_min_px, abs=0.05) and x.score == pytest.approx(y.score, abs=1e-3)
+
+
+def test_small_roi_is_upscaled_and_mapped_back(detector, general, aerial_labels) -> None:
+    # a tracker ROI of 100x110 px around one pedestrian (1093, 680)-(1122, 740): scaled 2.9x to the model
+    res = detector.detect(general, mode="roi", roi_xywh=(1060, 650, 100, 110))
+    assert res.detections
+    best = res.detections[0]
+    b = (best.x_min_px, best.y_min_px, best.x_max_px, best.y_max_px)
+    assert iou(b, (1093, 680, 1122, 740)) > 0.5
+    # the variance shrinks with the upscaling (finer model pixels) but stays positive
+    assert 0 < best.var_x_min_px2 < 10.0
