@@ -44,10 +44,15 @@ class ModelFileError(SkycapError, FileNotFoundError):
 
 @dataclass(frozen=True)
 class ThreadSettings:
-    """onnxruntime threading: ``intra_op`` threads inside one operator, ``inter_op`` across operators."""
+    """onnxruntime threading: ``intra_op`` threads inside one operator, ``inter_op`` across operators.
+
+    ``allow_spinning``: let idle worker threads busy-wait for the next operator (lower latency on
+    dedicated cores, wasted CPU on a companion computer shared with the tracker and the link; off).
+    """
 
     intra_op: int = 1
     inter_op: int = 1
+    allow_spinning: bool = False
 
 
 def _read_manifest(folder: Path) -> dict[str, str]:
@@ -117,9 +122,8 @@ def open_session(path: Path, threads: ThreadSettings, rel_hint: str):
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.log_severity_level = 3
-    if threads.intra_op == 1:
-        # no spinning worker threads on a shared small onboard CPU
-        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1" if threads.allow_spinning else "0")
+    so.add_session_config_entry("session.inter_op.allow_spinning", "1" if threads.allow_spinning else "0")
     try:
         return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own exception types
