@@ -22,6 +22,14 @@ Modes (:meth:`PersonDetector.detect`):
 
 Images are OpenCV BGR ``uint8`` arrays of shape (H, W, 3) (grey (H, W) is accepted). All boxes are in
 full-image pixels.
+
+Use (one detector per process; the session keeps its thread settings)::
+
+    det = PersonDetector(DetectorConfig(threads=1))
+    res = det.detect(frame_bgr, mode="roi", roi_xywh=tracker_roi)      # or "tiles" / "full"
+    msg = Detections(camera_id=..., frame_index=..., detector=det.name, mode=res.mode,
+                     boxes=[d.to_msg() for d in res.detections], width_px=W, height_px=H,
+                     T_world_cam=..., roi_px=res.roi_px)                # shared_msgs.messages
 """
 
 from __future__ import annotations
