@@ -30,7 +30,7 @@ import logging
 
 import numpy as np
 
-from reconstruction.monocular.linalg import rank1_approx, stiefel_mm_step, svt
+from reconstruction.monocular.linalg import rank1_approx, stiefel_mm_step, stiefel_newton_step, svt
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +43,7 @@ class BAConfig:
     gamma: float = 1.0  # articulation weight (0 = the paper's "BA w/o art." ablation)
     outer_iters: int = 40
     prox_iters: int = 5  # proximal-gradient steps on S per outer iteration
-    rot_iters: int = 2  # Stiefel MM steps on R per outer iteration
+    rot_iters: int = 1  # safeguarded Newton steps on R (Stiefel) per outer iteration
     tol: float = 1e-7  # stop when the relative decrease of F over an outer iteration is below this
     smooth_S: float = 0.0  # eta_S (extension)
     smooth_R: float = 0.0  # eta_R (extension)
@@ -148,9 +148,9 @@ class _Problem:
                     nb[1:] += R[:-1]
                     nb[:-1] += R[1:]
                     sel = slice(parity, None, 2)
-                    R[sel] = stiefel_mm_step(R[sel], A[sel], C[sel] + eta * nb[sel])
+                    R[sel] = stiefel_newton_step(R[sel], A[sel], C[sel] + eta * nb[sel])
             else:
-                R = stiefel_mm_step(R, A, C)
+                R = stiefel_newton_step(R, A, C)
         return R
 
     def update_S(self, S, R, t, L, mu, nuc):

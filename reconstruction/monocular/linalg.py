@@ -132,16 +132,65 @@ def complete_rotation(R2: np.ndarray) -> np.ndarray:
     return np.concatenate([R2, np.cross(R2[..., 0, :], R2[..., 1, :])[..., None, :]], axis=-2)
 
 
+def lambda_max_sym3(A: np.ndarray) -> np.ndarray:
+    """Largest eigenvalue of symmetric 3x3 matrices (..., 3, 3), closed form (trigonometric; Smith 1961)."""
+    q = np.trace(A, axis1=-2, axis2=-1) / 3.0
+    off = A[..., 0, 1] ** 2 + A[..., 0, 2] ** 2 + A[..., 1, 2] ** 2
+    d0, d1, d2 = A[..., 0, 0] - q, A[..., 1, 1] - q, A[..., 2, 2] - q
+    p = np.sqrt(np.maximum((d0**2 + d1**2 + d2**2 + 2 * off) / 6.0, 0.0))
+    safe = p > 1e-300
+    ps = np.where(safe, p, 1.0)
+    B = (A - q[..., None, None] * np.eye(3)) / ps[..., None, None]
+    r = np.clip(np.linalg.det(B) / 2.0, -1.0, 1.0)
+    phi = np.arccos(r) / 3.0
+    return np.where(safe, q + 2.0 * p * np.cos(phi), q)
+
+
 def stiefel_mm_step(R: np.ndarray, A: np.ndarray, C: np.ndarray) -> np.ndarray:
     """One majorise-minimise step for min_R tr(R A R^T) - 2 tr(R C^T), R (..., 2, 3) with R R^T = I.
 
     With ``A = S D S^T`` (3x3, PSD) and ``C = (W - t) D S^T`` (2x3) this is the weighted reprojection
     error ||(W - t - R S) D^1/2||_F^2 up to a constant. Because tr(R (A - lam I) R^T) is concave for
-    lam >= lambda_max(A) (the trace is used) and tr(R R^T) = 2 is constant, linearising it at the current R gives a
+    lam >= lambda_max(A) and tr(R R^T) = 2 is constant, linearising it at the current R gives a
     majoriser whose minimiser is the polar factor of C + R (lam I - A); the objective never increases.
 
     Shapes: R (..., 2, 3), A (..., 3, 3), C (..., 2, 3) -> (..., 2, 3).
     """
-    lam = np.trace(A, axis1=-2, axis2=-1)  # >= lambda_max(A) for PSD A: a valid (cheap) majoriser
+    lam = lambda_max_sym3(A) * (1.0 + 1e-9) + 1e-300 if A.shape[-1] == 3 else np.linalg.eigvalsh(A)[..., -1]
     target = C + lam[..., None, None] * R - R @ A
     return polar_2x3(target)
+
+
+_GENERATORS = np.array(
+    [[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]], [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], dtype=float
+)
+
+
+def stiefel_quadratic(R: np.ndarray, A: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """tr(R A R^T) - 2 tr(R C^T) per batch element (...,)."""
+    return np.einsum("...ij,...jk,...ik->...", R, A, R) - 2.0 * np.sum(R * C, axis=(-1, -2))
+
+
+def stiefel_newton_step(R: np.ndarray, A: np.ndarray, C: np.ndarray, damping: float = 1e-9) -> np.ndarray:
+    """Second-order step for min tr(R A R^T) - 2 tr(R C^T) over R (..., 2, 3) with orthonormal rows,
+    safeguarded to never increase it.
+
+    R is completed to a rotation Rbar and perturbed as Rbar expm([w]x); with E_k = (Rbar G_k)[:2] for the
+    generators G_k, the gradient is 2 tr(E_k (A R^T - C^T)) and the (Gauss-Newton) Hessian 2 tr(E_k A E_l^T).
+    Where the rotated R does not lower the objective, one majorise-minimise step is taken instead.
+    """
+    from scipy.spatial.transform import Rotation
+
+    Rb = complete_rotation(R)
+    E = np.einsum("...ij,kjl->...kil", Rb, _GENERATORS)[..., :2, :]  # (..., 3, 2, 3)
+    G = np.einsum("...ij,...kj->...ik", A, R) - np.swapaxes(C, -1, -2)  # (..., 3, 2) = A R^T - C^T
+    grad = 2.0 * np.einsum("...kij,...ji->...k", E, G)
+    H = 2.0 * np.einsum("...kij,...jl,...mil->...km", E, A, E)
+    H = H + damping * (np.trace(H, axis1=-2, axis2=-1)[..., None, None] + 1e-300) * np.eye(3)
+    w = -np.linalg.solve(H, grad[..., None])[..., 0]
+    shape = w.shape[:-1]
+    Rn = Rb @ Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(shape + (3, 3))
+    Rn = Rn[..., :2, :]
+    Rmm = stiefel_mm_step(R, A, C)
+    better = stiefel_quadratic(Rn, A, C) <= stiefel_quadratic(Rmm, A, C)
+    return np.where(better[..., None, None], Rn, Rmm)
