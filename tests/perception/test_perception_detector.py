@@ -178,3 +178,25 @@ def test_small_roi_is_upscaled_and_mapped_back(detector, general, aerial_labels)
     assert iou(b, (1093, 680, 1122, 740)) > 0.5
     # the variance shrinks with the upscaling (finer model pixels) but stays positive
     assert 0 < best.var_x_min_px2 < 10.0
+
+
+def test_result_fits_the_detections_message(detector, general) -> None:
+    from shared_msgs.codec import decode, encode
+    from shared_msgs.messages import Detections
+
+    res = detector.detect(general, mode="roi", roi_xywh=(520, 230, 320, 320))
+    msg = Detections(
+        header=Detections.make_header("drone_1", 123),
+        camera_id="drone_1/cam0",
+        frame_index=7,
+        detector=detector.name,
+        mode=res.mode,
+        boxes=[d.to_msg() for d in res.detections],
+        width_px=general.shape[1],
+        height_px=general.shape[0],
+        T_world_cam=tuple(float(v) for v in np.eye(4).ravel()),
+        roi_px=res.roi_px,
+    )
+    back = decode(encode(msg), Detections)
+    assert len(back.boxes) == len(res.detections) >= 6
+    assert back.boxes[0].var_x_max_px2 == pytest.approx(res.detections[0].var_x_max_px2)
