@@ -54,6 +54,7 @@ def test_short_demo_produces_a_sane_summary(tmp_path):
         assert row["orbit_radius_rmse_est_m"] < 0.5 and row["altitude_rmse_est_m"] < 0.3, row
         assert row["orbit_radius_rmse_m"] < 2.0 and row["altitude_rmse_m"] < 1.5, row
         assert row["phase_spacing_error_deg_rms"] < 10.0, row
+        assert row["frames_recorded"] > 100 and row["image_rate_hz"] > 5.0, row  # camera default 10 Hz
     assert s["fleet"]["min_separation_m"] > s["fleet"]["configured_min_separation_m"]
     assert 25.0 < s["fleet"]["flight_s"] < 90.0
     assert "setpt_hz" in r.stdout  # the printed table
