@@ -62,8 +62,8 @@ def _eval(args: argparse.Namespace) -> int:
 def add_reconstruct_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("multiview")
     g.add_argument("--mv-fit", choices=("product", "paper"), default="product", help="multiview fitting method (default product)")
-    g.add_argument("--device", default="cpu", help="torch device for fitting (default cpu)")
-    g.add_argument("--out", type=Path, default=None, help="output folder (default FLIGHT_DIR/reconstruction)")
+    g.add_argument("--mv-device", default="cpu", help="torch device for the multiview fit (default cpu)")
+    g.add_argument("--mv-out", type=Path, default=None, help="multiview output folder (default FLIGHT_DIR/reconstruction)")
 
 
 def reconstruct_flight(flight_dir: Path, args: argparse.Namespace) -> int:

@@ -12,7 +12,10 @@ with rho_s(e) = e^2 / (e^2 + s^2) (Geman-McClure), sigma1 = 40 px, sigma2 = 10 (
 for the rotation vector and 10 cm for the position: the paper gives no unit), camera rotation vector
 and position of every camera free per frame, the nearest-in-time frame of every camera, Adam with
 1000 iterations at lr 0.25 for the first frame and 100 at lr 0.1 for each next one (warm-started from
-the previous frame). Our GMM prior's energy stands in for VPoser's |z| (no open VPoser exists); the
+the previous frame). Those learning rates were tuned for VPoser's unit-normal latent; our variables are
+expressed in units that make the same rates give sensible steps (``paper_unit_*``: 0.1 rad for body
+rotations, 0.1 m for the root, 1 cm for shape, 0.01 rad / 0.1 m for the cameras) -- in raw radians and
+metres the schedule diverges. Our GMM prior's energy stands in for VPoser's |z| (no open VPoser exists); the
 skeleton's shape energy for |beta|. The first frame starts from the robust triangulation (below), as
 AirCap's online person estimate would.
 
@@ -71,20 +74,30 @@ class FitConfig:
     paper_w_cam: float = 1.0
     paper_w_pose: float = 0.01
     paper_w_shape: float = 0.01
+    # units of the paper path's free variables, so that AirCap's learning rates (0.25, 0.1 per Adam
+    # step, tuned for VPoser's unit-normal latent) make steps of a sensible size for our parameters
+    paper_unit_rot_rad: float = 0.1  # body pose and root orientation
+    paper_unit_transl_m: float = 0.1
+    paper_unit_shape_m: float = 0.01
+    paper_unit_cam_rot_rad: float = 0.01
+    paper_unit_cam_pos_m: float = 0.1
     # product path
     iters: int = 300
     lr: float = 0.03
     expected_noise_px: float = 5.0
     sigma_px_start: float = 40.0
     sigma_px_end: float = 12.0
-    w_pose_prior: float = 1.0
+    w_pose_prior: float = 0.1
     w_limits: float = 100.0
     w_shape: float = 1.0
-    accel_sigma_mps2: float = 15.0
+    accel_sigma_mps2: float = 15.0  # trunk and head joints
+    accel_mult_mid: float = 2.0  # elbows, knees
+    accel_mult_end: float = 3.0  # wrists, ankles
     w_cam_prior: float = 1.0
     cam_accel_sigma_mps2: float = 0.3
     cam_ang_accel_sigma_radps2: float = 0.2
     cam_smooth_window_s: float = 2.0
+    cam_knot_s: float = 0.5  # spacing of the camera-correction knots
     swap_robust: bool = True
     refine_cameras: bool = True
 
@@ -181,34 +194,51 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     uv_sw, conf_sw = uv[:, :, flip], conf[:, :, flip]
     K = f(obs.K)
     R_est, p_est = f(obs.T_est[:, :3, :3]), f(obs.T_est[:, :3, 3])
-    # start the cameras on the time-smoothed drone track: corrections dw, dp relative to the drone's
-    dR0 = Rotation.from_matrix(obs.T_smooth[:, :3, :3] @ np.swapaxes(obs.T_est[:, :3, :3], -1, -2)).as_rotvec()
-    dp0 = obs.T_smooth[:, :3, 3] - obs.T_est[:, :3, 3]
+    # Cameras: the refined track is the time-smoothed drone track plus a correction that is piecewise
+    # linear in time (knots every cam_knot_s per camera: smooth by construction, few unknowns, well
+    # conditioned). The GPS/IMU prior compares the refined track with EVERY drone pose sample.
+    samp = _pose_samples(capture, obs, t_grid, cfg.cam_smooth_window_s)
+    R_raw_s, p_raw_s = f(samp["T_est"][:, :3, :3]), f(samp["T_est"][:, :3, 3])
+    R_sm_s, p_sm_s = f(samp["T_smooth"][:, :3, :3]), f(samp["T_smooth"][:, :3, 3])
+    R_sm_f, p_sm_f = f(obs.T_smooth[:, :3, :3]), f(obs.T_smooth[:, :3, 3])
+    knots = _knots(samp, obs, cfg.cam_knot_s)
+    kf0, wf = torch.as_tensor(knots["f_i0"], device=dev), f(knots["f_w"])[:, None]
+    ks0, ws = torch.as_tensor(knots["s_i0"], device=dev), f(knots["s_w"])[:, None]
+    NK = knots["n"]
     k0 = torch.as_tensor(obs.k, device=dev)
     a = f(obs.alpha)[:, None, None]
-    ps, rs = f(np.maximum(obs.pos_sigma_m, 1e-3)), f(np.maximum(obs.rot_sigma_rad, 1e-4))
+    ps, rs = f(np.maximum(samp["pos_sigma_m"], 1e-3)), f(np.maximum(samp["rot_sigma_rad"], 1e-4))
+    dt_knot = cfg.cam_knot_s
     fps = (T - 1) / ((t_grid[-1] - t_grid[0]) * 1e-9)
+    # extremities accelerate more: elbows/knees x2, wrists/ankles x3 the trunk's sigma
+    mult = np.ones(17)
+    mult[[7, 8, 13, 14]] = cfg.accel_mult_mid
+    mult[[9, 10, 15, 16]] = cfg.accel_mult_end
+    acc_sigma = f(cfg.accel_sigma_mps2 * mult)[None, :, None]
 
     ro = f(ro0).requires_grad_()
     pose = f(pose0).requires_grad_()
     tr = f(tr0).requires_grad_()
     shape = f(shape0).requires_grad_()
-    dw = f(dR0).requires_grad_()
-    dp = f(dp0).requires_grad_()
+    dw = torch.zeros(NK, 3, dtype=dt, device=dev, requires_grad=True)
+    dp = torch.zeros(NK, 3, dtype=dt, device=dev, requires_grad=True)
     params = [ro, pose, tr, shape] + ([dw, dp] if cfg.refine_cameras else [])
     # consecutive frames of the same camera (for camera smoothness)
-    nxt = [(s.start, s.stop) for s in obs.cam_slices if s.stop - s.start >= 3]
-    tn = f((obs.t_ns - obs.t_ns.min()) * 1e-9)
+    knot_runs = [(k0_, k1_) for k0_, k1_ in knots["cam_ranges"] if k1_ - k0_ >= 3]
     noise2 = cfg.expected_noise_px**2
 
     def cam_poses():
-        R = _rotvec_to_R(dw) @ R_est
-        return R, p_est + dp
+        """Refined poses at the frames (N) and at the drone pose samples (M)."""
+        dwf = (1 - wf) * dw[kf0] + wf * dw[kf0 + 1]
+        dpf = (1 - wf) * dp[kf0] + wf * dp[kf0 + 1]
+        dws = (1 - ws) * dw[ks0] + ws * dw[ks0 + 1]
+        dps = (1 - ws) * dp[ks0] + ws * dp[ks0 + 1]
+        return _rotvec_to_R(dwf) @ R_sm_f, p_sm_f + dpf, _rotvec_to_R(dws) @ R_sm_s, p_sm_s + dps
 
     def energy(sig: float) -> torch.Tensor:
         X = model(ro, pose, tr, shape)  # (T, 17, 3)
         Xo = (1 - a) * X[k0] + a * X[k0 + 1]  # (N, 17, 3) at the frames' capture times
-        R, p = cam_poses()
+        R, p, Rs, pss = cam_poses()
         pix = _project(Xo, R, p, K)  # (N, 17, 2)
         e2 = ((pix[:, None] - uv) ** 2).sum(-1)  # (N, D, 17)
         cost = (conf * _gm(e2, sig)).sum(-1)
@@ -220,21 +250,19 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
         E_shape = cfg.w_shape * model.shape_energy(shape)
         Xs = model(ro, pose, tr, shape.detach())  # smoothness must not shrink the skeleton
         acc = (Xs[2:] - 2 * Xs[1:-1] + Xs[:-2]) * fps * fps
-        E_smooth = 0.5 * (acc**2).sum() / cfg.accel_sigma_mps2**2
+        E_smooth = 0.5 * ((acc / acc_sigma) ** 2).sum()
         E_cam = torch.zeros((), device=dev)
         if cfg.refine_cameras:
-            E_cam = cfg.w_cam_prior * 0.5 * (
-                _gm((dp**2).sum(-1) / ps**2, 9.0).sum() + _gm((dw**2).sum(-1) / rs**2, 9.0).sum()
-            )
-            for s0, s1 in nxt:
-                tt = tn[s0:s1]
-                h0 = (tt[1:-1] - tt[:-2]).clamp(min=1e-3)[:, None]
-                h1 = (tt[2:] - tt[1:-1]).clamp(min=1e-3)[:, None]
-                pp = p[s0:s1]
-                ap = ((pp[2:] - pp[1:-1]) / h1 - (pp[1:-1] - pp[:-2]) / h0) / (0.5 * (h0 + h1))
-                RR = R[s0:s1].reshape(-1, 9)
-                ar = ((RR[2:] - RR[1:-1]) / h1 - (RR[1:-1] - RR[:-2]) / h0) / (0.5 * (h0 + h1))
-                E_cam = E_cam + 0.5 * (ap**2).sum() / cfg.cam_accel_sigma_mps2**2 + 0.25 * (ar**2).sum() / cfg.cam_ang_accel_sigma_radps2**2
+            # GPS/IMU prior: refined track vs every drone pose sample (robust, the drones' own sigmas)
+            e_p = ((pss - p_raw_s) ** 2).sum(-1) / ps**2
+            dR = Rs @ R_raw_s.transpose(-1, -2)
+            e_r = (torch.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1) ** 2).sum(-1) / 4 / rs**2
+            E_cam = cfg.w_cam_prior * 0.5 * (_gm(e_p, 9.0).sum() + _gm(e_r, 9.0).sum())
+            # motion smoothness of the corrections (second differences at the knots)
+            for k0_, k1_ in knot_runs:
+                ap = (dp[k0_ + 2 : k1_] - 2 * dp[k0_ + 1 : k1_ - 1] + dp[k0_ : k1_ - 2]) / dt_knot**2
+                ar = (dw[k0_ + 2 : k1_] - 2 * dw[k0_ + 1 : k1_ - 1] + dw[k0_ : k1_ - 2]) / dt_knot**2
+                E_cam = E_cam + 0.5 * (ap**2).sum() / cfg.cam_accel_sigma_mps2**2 + 0.5 * (ar**2).sum() / cfg.cam_ang_accel_sigma_radps2**2
         return (E_data + E_prior + E_shape + E_smooth + E_cam) / T
 
     groups = [{"params": [ro, pose], "lr": cfg.lr}, {"params": [tr], "lr": cfg.lr * 0.5}, {"params": [shape], "lr": cfg.lr * 0.25}]
@@ -255,7 +283,7 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
             bar.set_postfix(E=f"{E.item():.2f}")
     with torch.no_grad():
         X = model(ro.double(), pose.double(), tr.double(), shape.double())  # float64: exports match exactly
-        R, p = cam_poses()
+        R, p, _, _ = cam_poses()
     T_ref = np.tile(np.eye(4), (N, 1, 1))
     T_ref[:, :3, :3] = R.double().cpu().numpy()
     T_ref[:, :3, 3] = p.double().cpu().numpy()
@@ -265,6 +293,68 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
         shape=shape.detach().double().cpu().numpy(), cam_index=obs.cam, cam_t_ns=obs.t_ns,
         T_world_cam_refined=T_ref, T_world_cam_drone=obs.T_est, fit_seconds=time.perf_counter() - t_start, method="product",
     )  # fmt: skip
+
+
+def _knots(samp: dict, obs, spacing_s: float) -> dict:
+    """Per camera knot times covering its samples and frames; interpolation index/weight of every frame
+    (``f_i0``, ``f_w``) and sample (``s_i0``, ``s_w``) into the concatenated knots."""
+    f_i0 = np.zeros(len(obs.t_ns), dtype=np.int64)
+    f_w = np.zeros(len(obs.t_ns))
+    s_i0 = np.zeros(len(samp["t_ns"]), dtype=np.int64)
+    s_w = np.zeros(len(samp["t_ns"]))
+    ranges, n0 = [], 0
+    step = int(spacing_s * 1e9)
+    for ci, (a0, a1) in enumerate(samp["cam_ranges"]):
+        ts = samp["t_ns"][a0:a1]
+        sl = obs.cam_slices[ci]
+        tf = obs.t_ns[sl]
+        lo = min(ts.min(), tf.min()) if len(tf) else ts.min()
+        hi = max(ts.max(), tf.max()) if len(tf) else ts.max()
+        nk = max(2, int(np.ceil((hi - lo) / step)) + 1)
+        kt = lo + np.arange(nk, dtype=np.int64) * step
+        for t, i0, w, idx in ((tf, f_i0, f_w, sl), (ts, s_i0, s_w, slice(a0, a1))):
+            k = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, nk - 2)
+            i0[idx] = n0 + k
+            w[idx] = np.clip((t - kt[k]) / step, 0.0, 1.0)
+        ranges.append((n0, n0 + nk))
+        n0 += nk
+    return {"n": n0, "f_i0": f_i0, "f_w": f_w, "s_i0": s_i0, "s_w": s_w, "cam_ranges": ranges}
+
+
+def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: float) -> dict:
+    """The drones' pose samples covering the frames: times (M,), T_est/T_smooth (M, 4, 4), sigmas (M,),
+    per camera index ranges, and for every frame n its interval j0[n] (into the M samples) and weight beta[n]."""
+    from reconstruction.multiview.observations import smooth_poses
+
+    ts, Te, Tsm, ps, rs, ranges = [], [], [], [], [], []
+    j0 = np.zeros(len(obs.t_ns), dtype=np.int64)
+    beta = np.zeros(len(obs.t_ns))
+    m0 = 0
+    for ci, cam in enumerate(capture.cameras):
+        sl = obs.cam_slices[ci]
+        tf = obs.t_ns[sl]
+        lo = min(int(t_grid[0]), int(tf.min()) if len(tf) else int(t_grid[0]))
+        hi = max(int(t_grid[-1]), int(tf.max()) if len(tf) else int(t_grid[-1]))
+        i_lo = max(int(np.searchsorted(cam.t_pose_ns, lo, side="right")) - 1, 0)
+        i_hi = min(int(np.searchsorted(cam.t_pose_ns, hi, side="left")) + 1, len(cam.t_pose_ns))
+        idx = np.arange(i_lo, i_hi)
+        t_s = cam.t_pose_ns[idx]
+        T_s = cam.T_world_cam[idx]
+        if len(t_s) < 2:  # a single pose: use it at both ends
+            t_s = np.array([lo - 1, hi + 1], dtype=np.int64)
+            T_s = np.stack([cam.T_world_cam[idx[0] if len(idx) else 0]] * 2)
+        smooth_all = smooth_poses(cam.t_pose_ns, cam.T_world_cam, smooth_window_s) if smooth_window_s > 0 else cam.T_world_cam
+        T_sm = smooth_all[idx] if len(idx) == len(t_s) else T_s
+        k = np.clip(np.searchsorted(t_s, tf, side="right") - 1, 0, len(t_s) - 2)
+        j0[sl] = m0 + k
+        beta[sl] = np.clip((tf - t_s[k]) / np.maximum(t_s[k + 1] - t_s[k], 1), 0.0, 1.0)
+        p_sig, r_sig = cam.sigma_at(t_s)
+        ts.append(t_s), Te.append(T_s), Tsm.append(T_sm), ps.append(p_sig), rs.append(np.radians(r_sig))
+        ranges.append((m0, m0 + len(t_s)))
+        m0 += len(t_s)
+    c = np.concatenate
+    return {"t_ns": c(ts), "T_est": c(Te), "T_smooth": c(Tsm), "pos_sigma_m": c(ps), "rot_sigma_rad": c(rs),
+            "cam_ranges": ranges, "j0": j0, "beta": beta}  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------- paper
@@ -305,15 +395,17 @@ def _fit_paper(capture, t_grid, cfg, model, prior, progress) -> FitResult:
         r_tilde = f(Rotation.from_matrix(Rt).as_rotvec())
         p_tilde = f(pt)
         uv_t, cf_t, K_t = f(uv), f(cf), f(Kt)
-        r = r_tilde.clone().requires_grad_()
-        p = p_tilde.clone().requires_grad_()
-        for v in (ro, pose, tr, shape):
-            v.requires_grad_()
+        u = (cfg.paper_unit_rot_rad, cfg.paper_unit_rot_rad, cfg.paper_unit_transl_m, cfg.paper_unit_shape_m)
+        v_ro, v_pose, v_tr, v_sh = (torch.clone(x / k).requires_grad_() for x, k in zip((ro, pose, tr, shape), u))
+        v_r = (r_tilde / cfg.paper_unit_cam_rot_rad).clone().requires_grad_()
+        v_p = (p_tilde / cfg.paper_unit_cam_pos_m).clone().requires_grad_()
         first = ti == 0
         n_it, lr = (cfg.paper_first_iters, cfg.paper_first_lr) if first else (cfg.paper_iters, cfg.paper_lr)
-        opt = torch.optim.Adam([ro, pose, tr, shape, r, p], lr=lr)
+        opt = torch.optim.Adam([v_ro, v_pose, v_tr, v_sh, v_r, v_p], lr=lr)
         for _ in range(n_it):
             opt.zero_grad(set_to_none=True)
+            ro, pose, tr, shape = v_ro * u[0], v_pose * u[1], v_tr * u[2], v_sh * u[3]
+            r, p = v_r * cfg.paper_unit_cam_rot_rad, v_p * cfg.paper_unit_cam_pos_m
             X = model(ro, pose, tr, shape[0])  # (1, 17, 3)
             pix = _project(X.expand(C, -1, -1), _rotvec_to_R(r), p, K_t)  # (C, 17, 2)
             e2 = ((pix[:, None] - uv_t) ** 2).sum(-1)
@@ -325,6 +417,8 @@ def _fit_paper(capture, t_grid, cfg, model, prior, progress) -> FitResult:
             E.backward()
             opt.step()
         with torch.no_grad():
+            ro, pose, tr, shape = v_ro * u[0], v_pose * u[1], v_tr * u[2], v_sh * u[3]
+            r, p = v_r * cfg.paper_unit_cam_rot_rad, v_p * cfg.paper_unit_cam_pos_m
             out_X.append(model(ro.double(), pose.double(), tr.double(), shape[0].double())[0].cpu().numpy())
             out_ro.append(ro[0].double().cpu().numpy())
             out_pose.append(pose[0].double().cpu().numpy())

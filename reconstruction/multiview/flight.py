@@ -134,8 +134,8 @@ def reconstruct_flight_dir(flight_dir: Path, args: argparse.Namespace) -> int:
 
     cap = read_flight(flight_dir)
     grid = output_grid(cap)
-    cfg = FitConfig(method=getattr(args, "mv_fit", "product") or "product", device=getattr(args, "device", "cpu") or "cpu")
-    out = Path(getattr(args, "out", None) or Path(flight_dir) / "reconstruction")
+    cfg = FitConfig(method=getattr(args, "mv_fit", "product") or "product", device=getattr(args, "mv_device", "cpu") or "cpu")
+    out = Path(getattr(args, "mv_out", None) or Path(flight_dir) / "reconstruction")
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.toml")
     res = fit_capture(cap, grid, cfg)
