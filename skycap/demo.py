@@ -21,6 +21,7 @@ prints its table. The flight folder: ``drone_<i>.mcap``, ``truth.mcap``, ``confi
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import os
@@ -178,7 +179,7 @@ def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[flo
 def run_demo(cfg: DemoConfig) -> dict | None:
     """Run the whole demo; returns the summary dict (None when the flight produced none)."""
     from groundstation.fleet import FleetClient, make_orbit_plan
-    from groundstation.summary import format_table, save_plan, write_summary
+    from groundstation.summary import format_table, save_plan, summarize_flight
     from onboard.orbit import evenly_spaced_phases
     from onboard.recorder import Recorder, truth_log_path
     from onboard.transport import Transport, TransportConfig
@@ -280,14 +281,24 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         bus.close()
     log.info("flight done in %.0f s; files in %s", time.monotonic() - t_begin, out)
 
+    recon: dict = {"ran": False}
     if cfg.reconstruct:
         if _has_command("reconstruct"):
-            r = subprocess.run(py + ["reconstruct", str(out)], stdout=open(logs / "reconstruct.log", "w"),
-                               stderr=subprocess.STDOUT)
-            log.info("skycap reconstruct %s: exit %d (log: %s)", out, r.returncode, logs / "reconstruct.log")
+            t0 = time.monotonic()
+            with open(logs / "reconstruct.log", "w") as f:
+                r = subprocess.run(py + ["reconstruct", str(out)], stdout=f, stderr=subprocess.STDOUT)
+            recon = {"ran": True, "exit_code": r.returncode, "seconds": round(time.monotonic() - t0, 1),
+                     "log": str(logs / "reconstruct.log")}
+            rs = out / "reconstruction" / "summary.json"
+            if r.returncode == 0 and rs.is_file():
+                recon["summary"] = json.loads(rs.read_text())
+            log.info("skycap reconstruct %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
+                     logs / "reconstruct.log")
         else:
             log.info("no 'skycap reconstruct' command in this build: skipping reconstruction")
-    summary = write_summary(out, settle_s=cfg.settle_s)
+    summary = summarize_flight(out, settle_s=cfg.settle_s)
+    summary["reconstruction"] = recon
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(format_table(summary), flush=True)
     print(f"summary: {out / 'summary.json'}", flush=True)
     return summary
