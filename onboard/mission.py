@@ -147,6 +147,7 @@ class Mission:
         self.state = State.IDLE
         self.plan: OrbitPlan | None = None
         self.failsafe: str | None = None  #: why the last failsafe fired
+        self._armed_seen = False  #: the vehicle reported armed since the arm command
 
     # --- operator commands -------------------------------------------------------------------------
     def command(self, action: str) -> Transition:
@@ -157,6 +158,7 @@ class Mission:
             return self._refuse(f"failsafe active ({self.failsafe}); land first")
         if action == "arm":
             if s in ON_GROUND:
+                self._armed_seen = False
                 return self._go(State.ARMED, Action.ARM)
             return self._refuse(f"cannot arm in state {s.value}")
         if action == "disarm":
@@ -213,8 +215,11 @@ class Mission:
             return self._go(State.HOVER, Action.NONE)
         if s in (State.LANDING, State.RETURNING) and not in_air:
             return self._go(State.LANDED, Action.NONE)
-        if s == State.ARMED and not armed:
-            return self._go(State.IDLE, Action.NONE)  # autopilot's preflight auto-disarm
+        if s == State.ARMED:
+            if armed:
+                self._armed_seen = True
+            elif self._armed_seen:  # armed, then disarmed: the autopilot's preflight auto-disarm
+                return self._go(State.IDLE, Action.NONE)
         if s in (State.HOVER, State.ORBIT, State.PAUSED) and not in_air and not armed:
             return self._go(State.LANDED, Action.NONE)  # landed by someone else (RC, autopilot failsafe)
         return Transition(s, Action.NONE)

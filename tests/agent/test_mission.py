@@ -125,3 +125,11 @@ def test_offboard_lost_resume_follow_or_pause():
     assert orbiting().offboard_lost("RETURN_TO_LAUNCH", True).state == State.RETURNING
     idle = Mission()
     assert idle.offboard_lost("HOLD", True).action == Action.NONE
+
+
+def test_arm_waits_for_the_vehicle_before_following_a_disarm():
+    m = Mission()
+    m.command("arm")
+    assert m.vehicle(armed=False, in_air=False, at_altitude=False).state == State.ARMED  # not armed yet
+    m.vehicle(armed=True, in_air=False, at_altitude=False)
+    assert m.vehicle(armed=False, in_air=False, at_altitude=False).state == State.IDLE  # auto-disarm
