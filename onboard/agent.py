@@ -47,7 +47,6 @@ from shared_msgs import (
     VehicleState,
     encode,
     keys,
-    now_ns,
     stamp_sent,
 )
 from onboard.config import AgentConfig

@@ -336,7 +336,6 @@ def _camera_command() -> list[str] | None:
 def _sim_node_main(argv: list[str] | None = None) -> int:
     import asyncio
 
-    import numpy as np
 
     from onboard.transport import Transport, TransportConfig
     from shared_msgs import SimTruth, VehicleTruth, keys
