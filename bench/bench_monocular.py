@@ -23,7 +23,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from reconstruction.monocular.ba import BAConfig, bundle_adjust  # noqa: E402
+from reconstruction.monocular.ba import bundle_adjust  # noqa: E402
 from reconstruction.monocular.dictionary import load_dictionary  # noqa: E402
 from reconstruction.monocular.evaluate import EvalSetup, load_motion, make_view  # noqa: E402
 from reconstruction.monocular.pipeline import reconstruct_monocular, MonocularConfig  # noqa: E402

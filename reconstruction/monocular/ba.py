@@ -14,8 +14,8 @@ plain nuclear-norm NRSFM of the paper's ablation. Alternating updates, each of w
 
 * L: best rank-1 approximation of l(S) (SVD);
 * t: weighted mean of the residual (closed form);
-* R: majorise-minimise steps on the Stiefel manifold (polar factor; :func:`stiefel_mm_step`), odd and even
-  frames in turn when the rotation smoothness couples neighbours;
+* R: second-order steps on the Stiefel manifold safeguarded by a majorise-minimise step (polar factor;
+  :func:`stiefel_newton_step`), odd and even frames in turn when the rotation smoothness couples neighbours;
 * S: monotone FISTA (Beck & Teboulle 2009) proximal-gradient steps with backtracking, whose proximal
   operator is singular value thresholding of S# (Nesterov acceleration as in the paper).
 
@@ -30,7 +30,7 @@ import logging
 
 import numpy as np
 
-from reconstruction.monocular.linalg import rank1_approx, stiefel_mm_step, stiefel_newton_step, svt
+from reconstruction.monocular.linalg import rank1_approx, stiefel_newton_step, svt
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,6 @@ from reconstruction.monocular.dictionary import (
     load_dictionary,
 )
 from reconstruction.monocular.linalg import (
-    complete_rotation,
     polar_2x3,
     project_l1_ball,
     prox_spectral_2x3,
