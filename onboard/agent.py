@@ -437,8 +437,8 @@ class Agent:
         sub(keys.all_drones_key(cfg.fleet, keys.STATE), self.on_neighbour_state, VehicleState)
         if cfg.record_camera:
             # the simulator camera also sends exact keypoints and simulated detections: kept for evaluation
-            for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D, "sim/keypoints2d_gt",
-                          "sim/detections"):
+            for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D, keys.SIM_KEYPOINTS2D_GT,
+                          keys.SIM_DETECTIONS):
                 sub(self.key(topic), self.on_camera, None)
         try:
             self.bus.declare_alive(keys.alive_key(cfg.fleet, self.id))
