@@ -128,6 +128,7 @@ def _run_sweep(args) -> int:
 
 def add_reconstruct_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("monocular")
+    g.add_argument("--mono-out", type=Path, default=None, help="monocular output folder (default FLIGHT_DIR/reconstruction_monocular)")
     g.add_argument("--mono-camera", default=None, help="camera (drone) name to use (default: the first)")
     g.add_argument("--mono-variant", choices=("paper", "extended"), default="extended",
                    help="monocular BA: the paper's, or extended with the drone attitude prior (default)")  # fmt: skip
@@ -139,11 +140,10 @@ def reconstruct_flight(flight_dir: Path, args: argparse.Namespace) -> int:
     """``skycap reconstruct FLIGHT_DIR --method monocular``: one drone's keypoints -> BVH/NPZ/CSV/RRD."""
     import json
 
-    from reconstruction.multiview.flight import read_flight
-    from reconstruction.monocular.reconstruct import reconstruct_capture
+    from reconstruction.monocular.reconstruct import read_flight_cameras, reconstruct_capture
 
-    cap = read_flight(flight_dir)
-    out = Path(getattr(args, "out", None) or Path(flight_dir) / "reconstruction_monocular")
+    cap = read_flight_cameras(flight_dir, camera=getattr(args, "mono_camera", None))
+    out = Path(getattr(args, "mono_out", None) or Path(flight_dir) / "reconstruction_monocular")
     summary = reconstruct_capture(
         cap, out, camera=getattr(args, "mono_camera", None), variant=getattr(args, "mono_variant", "extended"),
         body_rms_radius_m=getattr(args, "mono_body_radius_m", None),

@@ -23,7 +23,30 @@ from reconstruction.monocular.pipeline import MonocularConfig, reconstruct_monoc
 
 log = logging.getLogger(__name__)
 
-__all__ = ["reconstruct_capture"]
+__all__ = ["reconstruct_capture", "read_flight_cameras"]
+
+
+def read_flight_cameras(flight_dir: str | Path, camera: str | None = None) -> Capture:
+    """The drones of a flight folder as a :class:`Capture` (one drone is enough here), read with the
+    multiview package's per-drone reader :func:`reconstruction.multiview.flight.read_drone_log`
+    (``read_flight`` itself requires two drones). With ``camera`` only that drone's file is read."""
+    from reconstruction.multiview.flight import read_drone_log
+
+    flight_dir = Path(flight_dir)
+    files = sorted(flight_dir.glob("drone_*.mcap"))
+    if camera is not None:
+        files = [f for f in files if f.stem == camera] or files
+    if not files:
+        raise CaptureError(f"{flight_dir} holds no drone_<i>.mcap files; pass a flight folder written by the onboard recorder")
+    cams = []
+    for f in files:
+        try:
+            cams.append(read_drone_log(f))
+        except CaptureError as e:
+            log.warning("skipping %s: %s", f.name, e)
+    if not cams:
+        raise CaptureError(f"{flight_dir}: no drone log with keypoints (need drone_<i>.mcap with keypoints2d)")
+    return Capture(cams, meta={"source": str(flight_dir)})
 
 
 def reconstruct_capture(
