@@ -7,8 +7,8 @@ Pipeline (:func:`synthesize_capture`):
    ``mocap_to_coco17(read_bvh(f))`` (:mod:`skycap.skeleton`).
 2. ``drones`` cameras fly a circular orbit of ``radius_m`` at ``altitude_m`` above the ground (down = 0)
    about the person's (smoothed) hip centre, evenly spaced, moving at ``speed_mps`` along the orbit,
-   each camera aimed at the hip centre (with a small aim wobble). True poses are sampled at
-   ``pose_rate_hz``.
+   each camera aimed at the same smoothed hip centre (the filtered person estimate a gimbal controller
+   tracks), with a small slow aim wobble. True poses are sampled at ``pose_rate_hz``.
 3. Each camera captures frames at ``camera_rate_hz``; with ``unsync`` each camera gets its own random
    phase in [0, 1/rate) and a small per-frame jitter, so frames of different cameras never coincide.
 4. Keypoints: true joints (linearly interpolated to the frame time) projected with the TRUE pose, plus
@@ -161,7 +161,7 @@ def synthesize_capture(
             [centre_p[:, 0] + cfg.radius_m * np.cos(ang), centre_p[:, 1] + cfg.radius_m * np.sin(ang),
              np.full_like(ang, -cfg.altitude_m)], axis=-1)  # fmt: skip
         wob = _smooth_error(rng, tp_s, np.radians(cfg.aim_wobble_deg) * np.linalg.norm(pos - hip_p, axis=-1).mean())
-        T_true = look_at_T_world_cam(pos, hip_p + wob)
+        T_true = look_at_T_world_cam(pos, centre_p + wob)  # gimbal tracks the filtered person estimate
         # drone estimate = truth + bias/drift
         dp = _pose_error(rng, tp_s, cfg.camera_pos_noise_m, cfg.camera_noise_drift_fraction)
         dr = _pose_error(rng, tp_s, np.radians(cfg.camera_rot_noise_deg), cfg.camera_noise_drift_fraction)

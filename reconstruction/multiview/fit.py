@@ -82,7 +82,7 @@ class FitConfig:
     paper_unit_cam_rot_rad: float = 0.01
     paper_unit_cam_pos_m: float = 0.1
     # product path
-    iters: int = 300
+    iters: int = 200
     lr: float = 0.03
     expected_noise_px: float = 5.0
     sigma_px_start: float = 40.0
@@ -94,10 +94,10 @@ class FitConfig:
     accel_mult_mid: float = 2.0  # elbows, knees
     accel_mult_end: float = 3.0  # wrists, ankles
     w_cam_prior: float = 1.0
-    cam_accel_sigma_mps2: float = 0.3
-    cam_ang_accel_sigma_radps2: float = 0.2
+    cam_accel_sigma_mps2: float = 0.1
+    cam_ang_accel_sigma_radps2: float = 0.05
     cam_smooth_window_s: float = 2.0
-    cam_knot_s: float = 0.5  # spacing of the camera-correction knots
+    cam_knot_s: float = 1.0  # spacing of the camera-correction knots
     swap_robust: bool = True
     refine_cameras: bool = True
 
