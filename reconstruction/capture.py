@@ -3,8 +3,9 @@
 A :class:`Capture` holds one :class:`CameraCapture` per camera (drone). Each camera has
 
 * **poses** from the drone's own state estimate: ``t_pose_ns`` (P,), ``T_world_cam`` (P, 4, 4)
-  (camera optical -> world NED, see :mod:`skycap.frames`), and their 1-sigma uncertainty
-  ``pos_sigma_m`` (P,) and ``rot_sigma_deg`` (P,);
+  (camera optical -> world NED, see :mod:`skycap.frames`), and their uncertainty as RMS 3D errors
+  ``pos_sigma_m`` (P,) (sqrt of the position covariance's trace) and ``rot_sigma_deg`` (P,) (RMS
+  rotation angle);
 * **intrinsics**, timestamped: ``t_intrinsics_ns`` (I,), ``K`` (I, 3, 3) pinhole (no distortion),
   ``width_px``/``height_px``;
 * **frames**: ``t_frame_ns`` (F,) capture times, 2D keypoints ``keypoints_px`` (F, D, 17, 2) in COCO-17

@@ -254,9 +254,10 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
         E_cam = torch.zeros((), device=dev)
         if cfg.refine_cameras:
             # GPS/IMU prior: refined track vs every drone pose sample (robust, the drones' own sigmas)
-            e_p = ((pss - p_raw_s) ** 2).sum(-1) / ps**2
+            # the capture's sigmas are RMS 3D errors (sqrt of the covariance trace): per axis sigma^2 / 3
+            e_p = 3.0 * ((pss - p_raw_s) ** 2).sum(-1) / ps**2
             dR = Rs @ R_raw_s.transpose(-1, -2)
-            e_r = (torch.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1) ** 2).sum(-1) / 4 / rs**2
+            e_r = 3.0 * (torch.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1) ** 2).sum(-1) / 4 / rs**2
             E_cam = cfg.w_cam_prior * 0.5 * (_gm(e_p, 9.0).sum() + _gm(e_r, 9.0).sum())
             # motion smoothness of the corrections (second differences at the knots)
             for k0_, k1_ in knot_runs:
