@@ -86,7 +86,9 @@ def _plan(args) -> int:
 def _cmd(args) -> int:
     params = {"altitude_m": args.altitude} if args.altitude is not None else {}
     with _client(args) as fleet:
-        expect = [args.target] if args.target != "*" else sorted(d for d in fleet.alive if d.startswith("drone"))
+        if args.target == "*":
+            fleet.wait_until(lambda f: f.drones(), 2.0)  # health reports come at 2 Hz
+        expect = [args.target] if args.target != "*" else fleet.drones()
         acks = fleet.command(args.action, args.target, params, wait_s=args.wait, expect=expect,
                              results=("accepted", "refused", "failed"))
         return _print_acks(acks, expect)

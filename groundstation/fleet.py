@@ -78,7 +78,7 @@ class FleetClient:
         self.fleet = fleet
         self.bus = bus
         self.sender_id = sender_id
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # re-entrant: predicates of wait_until may call drones()/table()
         self.states: dict[str, VehicleState] = {}
         self.healths: dict[str, Health] = {}
         self.acks: list[CommandAck] = []
@@ -195,7 +195,7 @@ class FleetClient:
         """Send a command and wait up to ``wait_s`` for one ack in ``results`` from each expected drone
         (``expect``; default: the target, or every drone alive for "*"). Returns {drone_id: ack}."""
         if expect is None:
-            expect = [target] if target != "*" else sorted(d for d in self.alive if d not in (keys.GCS, keys.SIM))
+            expect = [target] if target != "*" else self.drones()
         cmd = self.send_command(action, target, params)
         return self.wait_acks(cmd.command_id, expect, wait_s, results)
 
@@ -224,6 +224,12 @@ class FleetClient:
         return True
 
     # --- views ------------------------------------------------------------------------------------
+    def drones(self) -> list[str]:
+        """Ids of the agents present: alive, or heard from (an agent health report) when not yet alive."""
+        with self._lock:
+            agents = {d for d, h in self.healths.items() if h.role == "agent"}
+            return sorted(agents | (self.alive & set(self.states)))
+
     def table(self) -> str:
         """One line per drone: state machine, mode, position, speed, battery, rates."""
         with self._lock:

@@ -280,7 +280,7 @@ class Agent:
                                       self.cfg.flight.approach_climb_m_s)
         if not self.autopilot.offboard_active:
             # PX4 refuses offboard without a setpoint stream: let the control loop stream first.
-            await asyncio.sleep(max(0.3, 3.0 / self.cfg.rates.setpoint_hz))
+            await asyncio.sleep(max(1.0, 10.0 / self.cfg.rates.setpoint_hz))
             await self.autopilot.start_offboard()
 
     # --- loops ----------------------------------------------------------------------------------------
