@@ -10,7 +10,8 @@ trajectory (``truth.mcap``) during the steady orbit phase (from ``plan.start_tim
 first land command): ``orbit_radius_rmse_m``, ``altitude_rmse_m``, ``phase_error_deg_rms`` (angle about
 the centre minus the slot angle, so including a lag common to the fleet) and
 ``phase_spacing_error_deg_rms`` (the same with the fleet's mean error at each instant removed: how well
-the spacing is kept); ``orbit_radius_rmse_est_m`` / ``altitude_rmse_est_m`` are the same errors against the
+the spacing is kept), ``yaw_to_center_error_deg_rms`` (true heading minus the bearing to the centre: the
+camera pointing); ``orbit_radius_rmse_est_m`` / ``altitude_rmse_est_m`` are the same errors against the
 vehicle's own recorded estimate, and ``phase_error_est_deg_rms`` (the control's tracking; the gap to the truth errors is the autopilot's
 estimation error, e.g. a GPS bias, which the agent cannot see). Fleet-wide: ``min_separation_m`` (closest approach of two drones over the whole
 flight, truth), ``flight_s`` (first take-off to last touch-down, truth above ``airborne_alt_m``).
@@ -33,7 +34,7 @@ from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SummaryError", "orbit_errors", "min_pairwise_distance_m", "summarize_flight", "format_table",
+__all__ = ["SummaryError", "orbit_errors", "min_pairwise_distance_m", "yaw_to_center_error_deg_rms", "summarize_flight", "format_table",
            "save_plan", "load_plan", "write_summary"]
 
 
@@ -85,6 +86,13 @@ def orbit_errors(plan: OrbitPlan, drone_ids: list[str], t_s: np.ndarray, pos_ned
     return out
 
 
+def yaw_to_center_error_deg_rms(center_ned_m, pos_ned_m: np.ndarray, yaw_rad: np.ndarray) -> float:
+    """RMS of heading minus the bearing to the centre (degrees); pos_ned_m (T, 3), yaw_rad (T,)."""
+    c = np.asarray(center_ned_m, dtype=float)
+    bearing = np.arctan2(c[1] - pos_ned_m[:, 1], c[0] - pos_ned_m[:, 0])
+    return float(np.degrees(np.sqrt(np.mean(_wrap_rad(yaw_rad - bearing) ** 2))))
+
+
 def min_pairwise_distance_m(pos_ned_m: np.ndarray) -> float:
     """Smallest distance between two drones at the same instant; pos_ned_m: (D, T, 3). inf for D < 2."""
     D = pos_ned_m.shape[0]
@@ -95,23 +103,31 @@ def min_pairwise_distance_m(pos_ned_m: np.ndarray) -> float:
     return best
 
 
-def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_s (T,), positions (D, T, 3), yaw_rad (D, T)) of the drones from the simulator truth."""
     from onboard.flightlog import FlightLog
 
-    ts, rows = [], []
+    ts, rows, yaws = [], [], []
     for m in FlightLog(path).messages():
         msg = m.msg
         if not isinstance(msg, SimTruth):
             continue
-        by_id = {v.drone_id: v.position_ned_m for v in msg.vehicles}
+        by_id = {v.drone_id: v for v in msg.vehicles}
         if not all(d in by_id for d in drone_ids):
             continue
         ts.append(msg.header.t_measurement_ns * 1e-9)
-        rows.append([by_id[d] for d in drone_ids])
+        rows.append([by_id[d].position_ned_m for d in drone_ids])
+        yaws.append([_yaw_of_q(by_id[d].q_world_body) for d in drone_ids])
     if not ts:
         raise SummaryError(f"{path} holds no simulator truth for {drone_ids}")
     order = np.argsort(ts)
-    return np.asarray(ts)[order], np.transpose(np.asarray(rows, dtype=float)[order], (1, 0, 2))
+    return (np.asarray(ts)[order], np.transpose(np.asarray(rows, dtype=float)[order], (1, 0, 2)),
+            np.asarray(yaws, dtype=float)[order].T)
+
+
+def _yaw_of_q(q_wxyz) -> float:
+    w, x, y, z = q_wxyz
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt_m: float = 0.3) -> dict:
@@ -144,7 +160,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
                   "_frame_t": np.asarray(frame_t),
                   # the first report of the orbit covers the offboard start: skip it
                   "setpoint_rate_hz": float(np.median(setpoint_hz[1:])) if len(setpoint_hz) > 1 else 0.0}
-    t_truth, pos = _read_truth(flight_dir / "truth.mcap", drone_ids)
+    t_truth, pos, yaw = _read_truth(flight_dir / "truth.mcap", drone_ids)
     t_start = plan.start_time_ns * 1e-9 + settle_s
     t_end = min(t_land, t_truth[-1])
     steady = (t_truth >= t_start) & (t_truth <= t_end)
@@ -153,7 +169,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
                            f"command): fly longer (--duration)")
     errs = orbit_errors(plan, drone_ids, t_truth[steady], pos[:, steady])
     out_drones = {}
-    for d in drone_ids:
+    for k, d in enumerate(drone_ids):
         st, ft = per[d]["_state_t"], per[d]["_frame_t"]
         sel = (st >= t_start) & (st <= t_end)
         in_orbit = st[sel]
@@ -166,6 +182,8 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
             "orbit_radius_rmse_est_m": round(est.get("orbit_radius_rmse_m", math.nan), 3),
             "altitude_rmse_est_m": round(est.get("altitude_rmse_m", math.nan), 3),
             "phase_error_est_deg_rms": round(est.get("phase_error_deg_rms", math.nan), 3),
+            "yaw_to_center_error_deg_rms": round(yaw_to_center_error_deg_rms(
+                plan.center_ned_m, pos[k, steady], yaw[k, steady]), 3),
             "frames_recorded": int(len(ft)),
             "image_rate_hz": round(float((len(ft) - 1) / (ft[-1] - ft[0])) if len(ft) > 1 else 0.0, 2),
             "state_rate_hz": round(float(len(in_orbit) / (t_end - t_start)), 2),
@@ -188,9 +206,9 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
 
 def format_table(summary: dict) -> str:
     cols = ["setpoint_rate_hz", "orbit_radius_rmse_m", "altitude_rmse_m", "phase_error_deg_rms",
-            "phase_spacing_error_deg_rms", "orbit_radius_rmse_est_m", "altitude_rmse_est_m", "phase_error_est_deg_rms", "frames_recorded",
+            "phase_spacing_error_deg_rms", "yaw_to_center_error_deg_rms", "orbit_radius_rmse_est_m", "altitude_rmse_est_m", "phase_error_est_deg_rms", "frames_recorded",
             "image_rate_hz", "state_rate_hz"]
-    short = ["setpt_hz", "radius_m", "alt_m", "phase_deg", "spacing_deg", "radius_est_m", "alt_est_m", "phase_est_deg", "frames",
+    short = ["setpt_hz", "radius_m", "alt_m", "phase_deg", "spacing_deg", "yaw_deg", "radius_est_m", "alt_est_m", "phase_est_deg", "frames",
              "img_hz", "state_hz"]
     lines = ["errors are RMS against the true trajectory (radius_m, alt_m, phase) and the vehicle's estimate (*_est_m)",
              "drone     " + "".join(f"{s:>14s}" for s in short)]

@@ -53,3 +53,12 @@ def test_min_pairwise_distance():
     pos[2, :, 1] = 20
     assert min_pairwise_distance_m(pos) == pytest.approx(2.5)
     assert min_pairwise_distance_m(pos[:1]) == math.inf
+
+
+def test_yaw_to_center_error():
+    from groundstation.summary import yaw_to_center_error_deg_rms
+
+    pos = np.array([[10.0, 0.0, -5.0], [0.0, 10.0, -5.0]])
+    assert yaw_to_center_error_deg_rms((0, 0, 0), pos, np.array([math.pi, -math.pi / 2])) == pytest.approx(0.0, abs=1e-9)
+    assert yaw_to_center_error_deg_rms((0, 0, 0), pos, np.array([math.pi + 0.1, -math.pi / 2 + 0.1])) == \
+        pytest.approx(math.degrees(0.1))
