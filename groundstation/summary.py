@@ -200,6 +200,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
             "configured_min_separation_m": plan.min_separation_m,
             "flight_s": round(flight_s, 2),
             "steady_orbit_s": round(float(t_end - t_start), 2),
+            "steady_orbit_window_s": [round(float(t_start), 3), round(float(t_end), 3)],
         },
     }
 
@@ -225,3 +226,63 @@ def write_summary(flight_dir: str | Path, **kw) -> dict:
     s = summarize_flight(flight_dir, **kw)
     (Path(flight_dir) / "summary.json").write_text(json.dumps(s, indent=2))
     return s
+
+
+def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | None = None,
+                            window_s: tuple[float, float] | None = None) -> dict:
+    """Accuracy of a flight's reconstruction against the simulator's ground truth (simulated flights only).
+
+    Reads the person's true COCO-17 joints from ``truth.mcap`` (SimTruth, NED metres), interpolates them
+    linearly to the reconstruction's frame times (``reconstruction/motion.npz``: ``t_ns``, ``joints_ned``)
+    and scores the joints of :data:`skycap.skeleton.SCORED_JOINTS` over all reconstructed frames and, with
+    ``window_s`` (UNIX seconds, e.g. the steady orbit), over that window (``*_window`` keys). Returns {} when
+    either file is absent.
+    """
+    from onboard.flightlog import FlightLog
+    from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
+    from skycap.skeleton import JOINT_GROUPS, SCORED_JOINTS
+
+    flight_dir = Path(flight_dir)
+    npz = Path(motion_npz) if motion_npz else flight_dir / "reconstruction" / "motion.npz"
+    truth = flight_dir / "truth.mcap"
+    if not (npz.is_file() and truth.is_file()):
+        return {}
+    rec = np.load(npz)
+    t_rec = rec["t_ns"].astype(np.int64)
+    pred = np.asarray(rec["joints_ned"], dtype=float)
+    ts, joints = [], []
+    for m in FlightLog(truth).messages():
+        if isinstance(m.msg, SimTruth) and len(m.msg.person_joints_ned_m) == 51:
+            ts.append(m.msg.header.t_measurement_ns)
+            joints.append(np.asarray(m.msg.person_joints_ned_m, dtype=float).reshape(17, 3))
+    if len(ts) < 2:
+        return {}
+    order = np.argsort(ts)
+    t_true = np.asarray(ts, dtype=np.int64)[order]
+    J = np.asarray(joints)[order]
+    inside = (t_rec >= t_true[0]) & (t_rec <= t_true[-1])
+    if not inside.any():
+        return {}
+    tq = (t_rec[inside] - t_true[0]).astype(float)
+    tt = (t_true - t_true[0]).astype(float)
+    gt = np.stack([np.stack([np.interp(tq, tt, J[:, j, k]) for k in range(3)], -1) for j in range(17)], 1)
+    pred = pred[inside]
+    sj = list(SCORED_JOINTS)
+
+    def score(sel: np.ndarray, suffix: str) -> dict:
+        e = per_joint_errors_mm(pred[sel], gt[sel])
+        return {
+            f"frames_scored{suffix}": int(sel.sum()),
+            f"mpjpe_mm{suffix}": round(mpjpe_mm(pred[sel], gt[sel], sj), 1),
+            f"pa_mpjpe_mm{suffix}": round(pa_mpjpe_mm(pred[sel], gt[sel], sj), 1),
+            f"per_group_mm{suffix}": {g: round(float(e[:, list(idx)].mean()), 1) for g, idx in JOINT_GROUPS.items()},
+        }
+
+    out = {"joints_scored": "COCO-17 " + ", ".join(str(j) for j in sj), **score(np.ones(len(pred), bool), "")}
+    if window_s is not None:
+        t_s = t_rec[inside] * 1e-9
+        sel = (t_s >= window_s[0]) & (t_s <= window_s[1])
+        if sel.any():
+            out.update(score(sel, "_window"))
+            out["window_s"] = [float(window_s[0]), float(window_s[1])]
+    return out

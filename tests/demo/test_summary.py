@@ -62,3 +62,34 @@ def test_yaw_to_center_error():
     assert yaw_to_center_error_deg_rms((0, 0, 0), pos, np.array([math.pi, -math.pi / 2])) == pytest.approx(0.0, abs=1e-9)
     assert yaw_to_center_error_deg_rms((0, 0, 0), pos, np.array([math.pi + 0.1, -math.pi / 2 + 0.1])) == \
         pytest.approx(math.degrees(0.1))
+
+
+def test_reconstruction_accuracy_against_truth(tmp_path):
+    """A reconstruction offset by 10 cm from the truth scores MPJPE 100 mm and PA-MPJPE 0; the window selects."""
+    import numpy as np
+
+    from groundstation.summary import reconstruction_accuracy
+    from onboard.recorder import Recorder, truth_log_path
+    from shared_msgs import SimTruth
+
+    rng = np.random.default_rng(0)
+    t0 = 1_700_000_000_000_000_000
+    t_truth = t0 + np.arange(0, 100) * 20_000_000  # 50 Hz for 2 s
+    base = rng.normal(size=(17, 3))
+    truth = [base + np.array([0.5 * k * 0.02, 0.0, 0.0]) for k in range(len(t_truth))]  # walking north 0.5 m/s
+    rec = Recorder(truth_log_path(tmp_path), node_id="sim")
+    for t, j in zip(t_truth, truth):
+        msg = SimTruth(header=SimTruth.make_header("sim", int(t)), vehicles=[],
+                       person_joints_ned_m=tuple(j.ravel().tolist()), person_root_ned_m=tuple(j[11].tolist()))
+        rec.record_message("truth", msg, int(t))
+    rec.close()
+    t_rec = t0 + 5_000_000 + np.arange(0, 19) * 100_000_000  # 10 Hz, between truth samples
+    walked = 0.5 * (t_rec - t0) * 1e-9
+    pred = base[None] + np.stack([walked, 0 * walked, 0 * walked], -1)[:, None] + np.array([0.0, 0.1, 0.0])
+    (tmp_path / "reconstruction").mkdir()
+    np.savez(tmp_path / "reconstruction" / "motion.npz", t_ns=t_rec, joints_ned=pred)
+    acc = reconstruction_accuracy(tmp_path, window_s=((t0 * 1e-9) + 1.0, (t0 * 1e-9) + 1.5))
+    assert acc["frames_scored"] == 19
+    assert abs(acc["mpjpe_mm"] - 100.0) < 0.5 and acc["pa_mpjpe_mm"] < 0.5
+    assert acc["frames_scored_window"] == 5 and abs(acc["mpjpe_mm_window"] - 100.0) < 0.5
+    assert reconstruction_accuracy(tmp_path / "nothing-here") == {}
