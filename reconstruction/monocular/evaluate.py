@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruction.metrics import pa_mpjpe_mm, per_joint_errors_mm
+from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
 from reconstruction.monocular.dictionary import PoseDictionary, load_dictionary
 from reconstruction.monocular.pipeline import MonocularConfig, reconstruct_monocular
 from skycap.bvh import read_bvh
@@ -50,7 +50,9 @@ class EvalSetup:
     miss_rate: float = 0.0
     fps: float = 24.0
     clip_seconds: float = 10.0  # first seconds of the clip (after the T-pose frame)
-    camera_rot_noise_deg: float = 2.0  # drone attitude error (extended BA's prior)
+    camera_rot_noise_deg: float = 2.0  # drone attitude error (extended BA's prior, perspective BA)
+    camera_pos_noise_m: float = 0.5  # drone position error, RMS (perspective BA); synth's default GPS error
+    camera_noise_drift_fraction: float = 0.0  # share of the pose error's variance that drifts slowly (rest white)
     seed: int = 0
 
 
@@ -59,6 +61,7 @@ class EvalMonocularConfig:
     setup: EvalSetup = dataclasses.field(default_factory=EvalSetup)
     method: MonocularConfig = dataclasses.field(default_factory=MonocularConfig)
     extended: bool = True  # also run the extended BA (beyond the paper)
+    perspective: bool = True  # also run the perspective BA with the drone's camera poses (beyond the paper)
     dictionary: str = ""  # pose dictionary npz ("" = the shipped one)
 
 
@@ -95,7 +98,8 @@ def make_view(joints_ned: np.ndarray, t_ns: np.ndarray, setup: EvalSetup) -> Vie
             drones=1, radius_m=setup.radius_m, altitude_m=setup.altitude_m,
             speed_mps=np.radians(setup.angular_velocity_deg_s) * setup.radius_m, camera_rate_hz=setup.fps,
             unsync=False, noise_px=setup.noise_px, outlier_rate=setup.outlier_rate, swap_rate=setup.swap_rate,
-            miss_rate=setup.miss_rate, camera_pos_noise_m=0.0, camera_rot_noise_deg=setup.camera_rot_noise_deg,
+            miss_rate=setup.miss_rate, camera_pos_noise_m=setup.camera_pos_noise_m,
+            camera_noise_drift_fraction=setup.camera_noise_drift_fraction, camera_rot_noise_deg=setup.camera_rot_noise_deg,
             focal_px=setup.focal_px,
         )  # fmt: skip
         cap, truth = synthesize_capture(joints_ned, t_ns, sc, seed=setup.seed)
@@ -130,7 +134,9 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
     J, t_ns = load_motion(motion, cfg.setup.clip_seconds)
     view = make_view(J, t_ns, cfg.setup)
     t0 = time.perf_counter()
-    res = reconstruct_monocular(view.W_px, view.confidence, d, cfg.method, T_world_cam=view.T_world_cam, extended=cfg.extended)
+    dt_s = float(np.median(np.diff(view.t_ns))) * 1e-9 if len(view.t_ns) > 1 else 1.0 / cfg.setup.fps
+    res = reconstruct_monocular(view.W_px, view.confidence, d, cfg.method, T_world_cam=view.T_world_cam, extended=cfg.extended,
+                                K=view.K, perspective=cfg.perspective, dt_s=dt_s)  # fmt: skip
     total = time.perf_counter() - t0
     out: dict = {"motion": str(motion), "frames": int(view.W_px.shape[0])}
     out["pa_mpjpe_mm_init"], out["per_joint_mm_init"] = _score(res.init.S, view.gt_ned_m)
@@ -139,6 +145,12 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
         out["pa_mpjpe_mm_ba_no_articulation"], _ = _score(res.ba_no_articulation.S, view.gt_ned_m)
     if res.ba_extended is not None:
         out["pa_mpjpe_mm_ba_extended"], out["per_joint_mm_extended"] = _score(res.ba_extended.S, view.gt_ned_m)
+    if res.ba_perspective is not None:
+        Xp = res.ba_perspective.X
+        out["pa_mpjpe_mm_ba_perspective"], out["per_joint_mm_perspective"] = _score(np.swapaxes(Xp, 1, 2), view.gt_ned_m)
+        out["mpjpe_mm_ba_perspective"] = float(mpjpe_mm(Xp, view.gt_ned_m, joints=LIMB_JOINTS))
+        out["perspective_seconds"] = res.perspective_seconds
+        out["perspective_iterations"] = res.ba_perspective.iterations
     out["init_seconds"] = res.init_seconds
     out["ba_seconds"] = res.ba_seconds
     out["total_seconds"] = total
@@ -167,7 +179,8 @@ def sweep(motions: list, cfg: EvalMonocularConfig, omegas_deg_s: list[float], pr
 def sweep_means(rows: list[dict]) -> dict:
     """Mean over motions per angular velocity: {key: (omegas, values)}."""
     omegas = sorted({r["angular_velocity_deg_s"] for r in rows})
-    keys = ["pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_no_articulation", "pa_mpjpe_mm_ba_extended"]
+    keys = ["pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_no_articulation", "pa_mpjpe_mm_ba_extended",
+            "pa_mpjpe_mm_ba_perspective", "mpjpe_mm_ba_perspective"]
     out = {"angular_velocity_deg_s": omegas}
     for k in keys:
         vals = [[r[k] for r in rows if r["angular_velocity_deg_s"] == w and k in r] for w in omegas]
@@ -190,6 +203,7 @@ def plot_sweep(means: dict, path: str | Path, title: str = "") -> Path:
         ("pa_mpjpe_mm_ba_no_articulation", "BA w/o art.", "s-"),
         ("pa_mpjpe_mm_ba", "BA", "^-"),
         ("pa_mpjpe_mm_ba_extended", "BA extended (ours)", "d:"),
+        ("pa_mpjpe_mm_ba_perspective", "BA perspective, known cameras (ours)", "v-"),
     ]:
         if k in means:
             ax.plot(w, means[k], st, label=lab)

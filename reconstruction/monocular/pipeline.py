@@ -26,6 +26,13 @@ import numpy as np
 from reconstruction.monocular.ba import BAConfig, BAResult, bundle_adjust
 from reconstruction.monocular.dictionary import PoseDictionary
 from reconstruction.monocular.linalg import complete_rotation
+from reconstruction.monocular.perspective import (
+    PerspectiveConfig,
+    PerspectiveResult,
+    orthographic_to_world,
+    perspective_bundle_adjust,
+)
+from skycap.errors import SkycapError
 from reconstruction.monocular.single_frame import InitConfig, InitResult, initialise
 from reconstruction.monocular.tracks import temporal_outlier_mask
 
@@ -56,6 +63,7 @@ class MonocularConfig:
     init: InitConfig = dataclasses.field(default_factory=InitConfig)
     ba: BAConfig = dataclasses.field(default_factory=BAConfig)
     extension: ExtensionConfig = dataclasses.field(default_factory=ExtensionConfig)
+    perspective: PerspectiveConfig = dataclasses.field(default_factory=PerspectiveConfig)
     ablation_no_articulation: bool = True  # also run BA with gamma = 0 (the paper's "BA w/o art.")
 
 
@@ -69,6 +77,8 @@ class MonocularResult:
     init_seconds: float
     ba_seconds: float
     ba_extended_frame: str = "canonical"  # "world" when the attitude prior was used
+    ba_perspective: PerspectiveResult | None = None  # world joints (needs camera poses and K)
+    perspective_seconds: float = 0.0
 
 
 def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
@@ -91,6 +101,9 @@ def reconstruct_monocular(
     cfg: MonocularConfig | None = None,
     T_world_cam: np.ndarray | None = None,
     extended: bool = False,
+    K: np.ndarray | None = None,
+    perspective: bool = False,
+    dt_s: float = 1.0 / 24.0,
 ) -> MonocularResult:
     """Run the pipeline on one camera's keypoints.
 
@@ -100,6 +113,10 @@ def reconstruct_monocular(
         dictionary: the pose dictionary.
         T_world_cam: (T, 4, 4) the drone's camera poses at the frames (for the extended variant's prior).
         extended: also run the extended BA.
+        K: (3, 3) or (T, 3, 3) intrinsics (for the perspective BA).
+        perspective: also run the perspective BA in the world frame (needs ``T_world_cam`` and ``K``),
+            started from the paper BA placed in the world (:mod:`reconstruction.monocular.perspective`).
+        dt_s: frame period (perspective BA's smoothness).
     """
     cfg = cfg or MonocularConfig()
     W_px = np.asarray(W_px, dtype=float)
@@ -132,9 +149,25 @@ def reconstruct_monocular(
             frame = "world"
         else:
             ext = bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, bcfg)
+    persp, persp_s = None, 0.0
+    if perspective:
+        if T_world_cam is None or K is None:
+            raise SkycapError("the perspective BA needs the camera poses T_world_cam (T, 4, 4) and intrinsics K; "
+                              "pass them or run without perspective")  # fmt: skip
+        t0 = time.perf_counter()
+        T_wc = np.asarray(T_world_cam, dtype=float)
+        Kf = np.asarray(K, dtype=float)
+        r0 = cfg.perspective.body_rms_radius_m
+        starts = [orthographic_to_world(ba.S, ba.R, W_px, w, T_wc, Kf, r0)]
+        if ext is not None:
+            starts.append(orthographic_to_world(ext.S, ext.R, W_px, w, T_wc, Kf, r0, frame=frame))
+        # multi-start (paper BA, extended BA placed in the world): keep the lowest objective
+        runs = [perspective_bundle_adjust(W_px, w, T_wc, Kf, X0, dictionary.limbs, dt_s=dt_s, cfg=cfg.perspective) for X0 in starts]
+        persp = min(runs, key=lambda r: r.objective_final_sigma[1])
+        persp_s = time.perf_counter() - t0
     return MonocularResult(
         init=init, ba=ba, ba_no_articulation=ba0, ba_extended=ext, weights=w, init_seconds=init_s, ba_seconds=ba_s,
-        ba_extended_frame=frame,
+        ba_extended_frame=frame, ba_perspective=persp, perspective_seconds=persp_s,
     )  # fmt: skip
 
 

@@ -11,6 +11,7 @@ its 2D centre at the depth that this size implies (:func:`reconstruction.monocul
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -53,7 +54,7 @@ def reconstruct_capture(
     cap: Capture,
     out_dir: str | Path,
     camera: str | None = None,
-    variant: str = "extended",
+    variant: str = "perspective",
     body_rms_radius_m: float | None = None,
     cfg: MonocularConfig | None = None,
     rrd: bool = True,
@@ -81,16 +82,26 @@ def reconstruct_capture(
     T_wc = cam.pose_at(cam.t_frame_ns)
     K = cam.K_at(cam.t_frame_ns)
     d = load_dictionary()
-    res = reconstruct_monocular(W, conf, d, cfg, T_world_cam=T_wc, extended=(variant == "extended"))
+    if variant not in ("paper", "extended", "perspective"):
+        raise CaptureError(f"variant must be 'paper', 'extended' or 'perspective', not {variant!r}")
+    persp = variant == "perspective"
+    if persp and body_rms_radius_m is not None:
+        cfg = dataclasses.replace(cfg, perspective=dataclasses.replace(cfg.perspective, body_rms_radius_m=body_rms_radius_m))
+    dt_s = float(np.median(np.diff(cam.t_frame_ns))) * 1e-9
+    res = reconstruct_monocular(W, conf, d, cfg, T_world_cam=T_wc, extended=variant != "paper", K=K, perspective=persp, dt_s=dt_s)
     if variant == "extended" and res.ba_extended is not None:
         ba, frame = res.ba_extended, res.ba_extended_frame
     else:
         ba, frame = res.ba, "canonical"
     radius = body_rms_radius_m
-    if radius is None:
-        mp = d.mean_pose if d.mean_pose is not None else d.bases[0]
-        radius = float(np.sqrt(np.mean(np.sum(mp**2, axis=0))))
-    joints = to_world_metric(ba.S, ba.R, W, res.weights, T_wc, K, radius, frame=frame)
+    if persp:
+        joints = res.ba_perspective.X  # placed by the perspective BA with the camera poses
+        radius = cfg.perspective.body_rms_radius_m
+    else:
+        if radius is None:
+            mp = d.mean_pose if d.mean_pose is not None else d.bases[0]
+            radius = float(np.sqrt(np.mean(np.sum(mp**2, axis=0))))
+        joints = to_world_metric(ba.S, ba.R, W, res.weights, T_wc, K, radius, frame=frame)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.toml")
@@ -101,6 +112,7 @@ def reconstruct_capture(
     summary = {
         "method": "monocular", "variant": variant, "camera": cam.name, "detector": cam.detectors[det],
         "frames": int(cam.num_frames), "init_seconds": res.init_seconds, "ba_seconds": res.ba_seconds,
+        "perspective_seconds": res.perspective_seconds,
         "body_rms_radius_m": radius, "outputs": {k: str(v) for k, v in paths.items()},
     }  # fmt: skip
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -37,7 +37,7 @@ def test_reconstruct_capture_writes_world_motion(cmu_dir, tmp_path):
     assert pa_mpjpe_mm(joints, gt, joints=range(5, 17)) < 80.0
     assert np.median(np.linalg.norm(joints.mean(1) - gt.mean(1), axis=-1)) < 0.5
     assert np.all(np.median(joints[:, 0, 2] - joints[:, 15:17, 2].mean(-1)) < -1.0)
-    assert summary["variant"] == "extended"
+    assert summary["variant"] == "perspective"
 
 
 def test_reconstruct_capture_rejects_unknown_camera(tmp_path):
