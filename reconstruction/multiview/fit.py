@@ -50,7 +50,7 @@ from tqdm import tqdm
 from reconstruction.body import skeleton17 as sk
 from reconstruction.body.model import BodyModel, SkeletonBodyModel
 from reconstruction.capture import Capture
-from reconstruction.multiview.observations import fill_gaps, gather, interpolate_to_grid, median_in_time, triangulate
+from reconstruction.multiview.observations import fill_gaps, gather, interpolate_to_grid, median_in_time, reject_blunders, triangulate
 from reconstruction.prior import PosePrior, load_default_prior
 from skycap.skeleton import COCO17_FLIP
 
@@ -141,7 +141,7 @@ def _project(X: torch.Tensor, R_wc: torch.Tensor, p: torch.Tensor, K: torch.Tens
 def initial_guess(capture: Capture, t_grid_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
     """Robust triangulation at the grid times -> (joints (T, 17, 3), shape (16,), (root_orient, pose, transl) by IK)."""
     uv, conf, Ts, Ks = interpolate_to_grid(capture, t_grid_ns)
-    X = median_in_time(fill_gaps(triangulate(uv, conf, Ts, Ks)))
+    X = median_in_time(fill_gaps(reject_blunders(triangulate(uv, conf, Ts, Ks))))
     if not np.all(np.isfinite(X)):
         from reconstruction.capture import CaptureError
 

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 
@@ -127,6 +128,14 @@ def interpolate_to_grid(capture: Capture, t_grid_ns: np.ndarray, max_gap_periods
         gap = (tf[i1] - tf[i0]).astype(float)
         a = np.where(gap > 0, (t_grid_ns - tf[i0]) / np.maximum(gap, 1), 0.0)
         inside = (a >= -0.01) & (a <= 1.01) & (gap <= max_gap_periods * period)
+        # before the camera's first / after its last frame: hold the nearest frame for up to one period
+        # (otherwise the clip's first and last output times lose views and triangulate badly)
+        before = (t_grid_ns < tf[0]) & (tf[0] - t_grid_ns <= period)
+        after = (t_grid_ns > tf[-1]) & (t_grid_ns - tf[-1] <= period)
+        a = np.where(before, 0.0, np.where(after, 1.0, a))
+        i0 = np.where(before, 0, i0)
+        i1 = np.where(after, len(tf) - 1, i1)
+        inside = inside | before | after
         a = np.clip(a, 0, 1)[:, None, None]
         d = c.num_detectors
         uv[ci, :, :d] = (1 - a[..., None]) * c.keypoints_px[i0] + a[..., None] * c.keypoints_px[i1]
@@ -203,6 +212,24 @@ def median_in_time(X: np.ndarray, size: int = 5) -> np.ndarray:
     if len(X) < size:
         return X
     return median_filter(X, size=(size, 1, 1), mode="nearest")
+
+
+def reject_blunders(X: np.ndarray, size: int = 9, max_dev_m: float = 0.3) -> np.ndarray:
+    """Joint tracks (T, J, 3) with points farther than ``max_dev_m`` from their running median (window
+    ``size``, mirrored at the ends) set to NaN: a two-view triangulation with one wrong view lands
+    anywhere on the good view's ray, and several such frames at a clip's end defeat a short median."""
+    X = X.copy()
+    if len(X) < 3:
+        return X
+    h = min(size, len(X) - (1 - len(X) % 2)) // 2
+    pad = np.concatenate([X[h:0:-1], X, X[-2 : -h - 2 : -1]]) if h > 0 else X
+    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * h + 1, axis=0)  # (T, J, 3, 2h+1)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows stay NaN
+        med = np.nanmedian(win, axis=-1)
+    bad = np.linalg.norm(X - med, axis=-1) > max_dev_m  # NaN compares False
+    X[bad] = np.nan
+    return X
 
 
 def fill_gaps(X: np.ndarray) -> np.ndarray:
