@@ -1,8 +1,9 @@
 """The optional Anny body model behind the same BodyModel interface.
 
-Anny's first start takes ~75 s and writes a ~790 MB cache; this test runs only where that cache already
-exists (``$ANNY_CACHE_DIR``, else the repository's gitignored ``.cache/anny``), so CI stays fast. Build
-it once with ``ANNY_CACHE_DIR=.cache/anny python -m reconstruction.body.derive_from_anny``.
+Anny's first start takes ~75-140 s on this 2-core machine and writes a ~790 MB cache
+(``$ANNY_CACHE_DIR``, else the repository's gitignored ``.cache/anny``); the session fixture builds it once
+when absent (a clean CI clone pays that once) and later runs start in seconds. Set SKYCAP_SKIP_ANNY=1 to
+skip these tests on a machine without the disk space.
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ CACHE = Path(os.environ.get("ANNY_CACHE_DIR", Path(__file__).resolve().parents[2
 @pytest.fixture(scope="session")
 def anny_model():
     pytest.importorskip("anny")
-    if not CACHE.is_dir() or not any(CACHE.iterdir()):
-        pytest.skip(f"no Anny cache at {CACHE} (75 s first start); build it with derive_from_anny")
+    if os.environ.get("SKYCAP_SKIP_ANNY"):
+        pytest.skip("SKYCAP_SKIP_ANNY is set")
+    CACHE.mkdir(parents=True, exist_ok=True)  # first use builds the cache (slow once)
     from reconstruction.body.model import AnnyBodyModel
 
     return AnnyBodyModel(cache_dir=CACHE)
