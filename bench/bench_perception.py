@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
+import sys
 import statistics
 import time
 from pathlib import Path
@@ -28,23 +28,17 @@ import numpy as np
 from onboard.detector.detector import DetectorConfig, PersonDetector
 from reconstruction.keypoints.detectors import KEYPOINT_MODELS, load_model
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe_machine  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_IMAGE = REPO.parent / "shared" / "data" / "images" / "aerial" / "general_example.png"
 
 
 def machine() -> str:
-    cpu = platform.processor() or "?"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     import onnxruntime as ort
 
-    return f"{cpu}, {os.cpu_count()} logical CPUs, {platform.system()} {platform.release()}, onnxruntime {ort.__version__}"
-
+    return describe_machine(f"onnxruntime {ort.__version__}")
 
 def timeit(fn, repeats: int, warmup: int = 2) -> tuple[float, float, float, float]:
     """(min, median, p90) of wall time and the median CPU time of this process (all its threads)."""

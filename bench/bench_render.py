@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
+import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -27,19 +27,12 @@ from simulator.scene.config import CameraConfig, SceneConfig
 from simulator.scene.person import PersonSim
 from simulator.scene.render import encode_jpeg
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe_machine  # noqa: E402
+
 
 def _machine() -> str:
-    model = platform.processor() or ""
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return f"{model}, {os.cpu_count()} CPUs, load avg {load:.2f}, OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads)"
-
+    return describe_machine(f"OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads)")
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

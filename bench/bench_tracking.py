@@ -14,7 +14,6 @@ import argparse
 import logging
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -28,20 +27,14 @@ from onboard.formation.slots import assign_slot_angles  # noqa: E402
 from onboard.tracking.filter import CooperativeFilter  # noqa: E402
 from onboard.tracking.measurement import box_from_person, measurement_from_box  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe_machine  # noqa: E402
+
 
 def machine() -> str:
-    cpu = platform.processor() or "?"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     import casadi
 
-    return f"{cpu}, {os.cpu_count()} cores visible, Python {platform.python_version()}, numpy {np.__version__}, casadi {casadi.__version__}"
-
+    return describe_machine(f"numpy {np.__version__}", f"casadi {casadi.__version__}")
 
 def pct(a, q):
     return float(np.percentile(np.asarray(a) * 1e3, q))

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -34,10 +33,14 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import describe_machine  # noqa: E402
 
 from onboard.recorder import Recorder  # noqa: E402
 from onboard.transport import Transport, TransportConfig, free_tcp_port  # noqa: E402
 from shared_msgs import (  # noqa: E402
+
     BoundingBox,
     CameraFrame,
     CameraInfo,
@@ -53,12 +56,7 @@ EYE4 = tuple(float(x) for x in np.eye(4).reshape(-1))
 
 
 def machine() -> str:
-    try:
-        model = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        model = platform.processor()
-    return f"{model}, {os.cpu_count()} CPUs, {platform.system()} {platform.release()}, Python {platform.python_version()}"
-
+    return describe_machine()
 
 def state(i: int) -> VehicleState:
     return VehicleState(
