@@ -94,9 +94,12 @@ class FitConfig:
     accel_mult_mid: float = 2.0  # elbows, knees
     accel_mult_end: float = 3.0  # wrists, ankles
     w_cam_prior: float = 1.0
-    cam_accel_sigma_mps2: float = 0.1
-    cam_ang_accel_sigma_radps2: float = 0.05
-    cam_smooth_window_s: float = 2.0
+    # corrections' knot-to-knot accelerations (the drone's own track is smooth: white GPS/IMU noise is
+    # only averaged away over many samples, so the correction must not follow it at short time scales)
+    cam_accel_sigma_mps2: float = 0.05
+    cam_ang_accel_sigma_radps2: float = 0.005
+    cam_smooth_window_s: float = 6.0  # reference track: Savitzky-Golay over this window (clipped to the clip)
+    cam_smooth_order: int = 2  # Savitzky-Golay polynomial order of the reference camera track
     cam_knot_s: float = 1.0  # spacing of the camera-correction knots
     swap_robust: bool = True
     refine_cameras: bool = True
@@ -185,7 +188,7 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     model = model.to(dev)
     prior = prior.to(dev)
     _, shape0, (ro0, pose0, tr0) = initial_guess(capture, t_grid)
-    obs = gather(capture, t_grid, cfg.cam_smooth_window_s)
+    obs = gather(capture, t_grid, cfg.cam_smooth_window_s, cfg.cam_smooth_order)
     T = len(t_grid)
     N = len(obs.t_ns)
     f = lambda a: torch.as_tensor(np.asarray(a), dtype=dt, device=dev)  # noqa: E731
@@ -197,7 +200,7 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     # Cameras: the refined track is the time-smoothed drone track plus a correction that is piecewise
     # linear in time (knots every cam_knot_s per camera: smooth by construction, few unknowns, well
     # conditioned). The GPS/IMU prior compares the refined track with EVERY drone pose sample.
-    samp = _pose_samples(capture, obs, t_grid, cfg.cam_smooth_window_s)
+    samp = _pose_samples(capture, obs, t_grid, cfg.cam_smooth_window_s, cfg.cam_smooth_order)
     R_raw_s, p_raw_s = f(samp["T_est"][:, :3, :3]), f(samp["T_est"][:, :3, 3])
     R_sm_s, p_sm_s = f(samp["T_smooth"][:, :3, :3]), f(samp["T_smooth"][:, :3, 3])
     R_sm_f, p_sm_f = f(obs.T_smooth[:, :3, :3]), f(obs.T_smooth[:, :3, 3])
@@ -322,7 +325,7 @@ def _knots(samp: dict, obs, spacing_s: float) -> dict:
     return {"n": n0, "f_i0": f_i0, "f_w": f_w, "s_i0": s_i0, "s_w": s_w, "cam_ranges": ranges}
 
 
-def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: float) -> dict:
+def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: float, smooth_order: int = 2) -> dict:
     """The drones' pose samples covering the frames: times (M,), T_est/T_smooth (M, 4, 4), sigmas (M,),
     per camera index ranges, and for every frame n its interval j0[n] (into the M samples) and weight beta[n]."""
     from reconstruction.multiview.observations import smooth_poses
@@ -344,7 +347,7 @@ def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: fl
         if len(t_s) < 2:  # a single pose: use it at both ends
             t_s = np.array([lo - 1, hi + 1], dtype=np.int64)
             T_s = np.stack([cam.T_world_cam[idx[0] if len(idx) else 0]] * 2)
-        smooth_all = smooth_poses(cam.t_pose_ns, cam.T_world_cam, smooth_window_s) if smooth_window_s > 0 else cam.T_world_cam
+        smooth_all = smooth_poses(cam.t_pose_ns, cam.T_world_cam, smooth_window_s, smooth_order) if smooth_window_s > 0 else cam.T_world_cam
         T_sm = smooth_all[idx] if len(idx) == len(t_s) else T_s
         k = np.clip(np.searchsorted(t_s, tf, side="right") - 1, 0, len(t_s) - 2)
         j0[sl] = m0 + k

@@ -5,7 +5,7 @@
   (``k`` lower grid index and ``alpha`` in [0, 1]: frame time = (1 - alpha) t_k + alpha t_{k+1}).
 * :func:`interpolate_to_grid` resamples each camera's keypoints to the grid times (linear between the
   two neighbouring frames; missing if either is missing or the gap is too long).
-* :func:`smooth_poses` — the drone pose tracks smoothed in time (quadratic Savitzky-Golay), the
+* :func:`smooth_poses` — the drone pose tracks smoothed in time (Savitzky-Golay), the
   starting guess for the cameras.
 * :func:`triangulate` — confidence-weighted DLT per joint and time, refined by iteratively reweighted
   least squares with Geman-McClure weights (outliers and swapped views lose their weight).
@@ -26,29 +26,29 @@ from reconstruction.capture import CameraCapture, Capture, CaptureError, interpo
 from skycap.frames import invert_T, make_T
 
 
-def smooth_poses(t_ns: np.ndarray, T: np.ndarray, window_s: float = 2.0) -> np.ndarray:
-    """Savitzky-Golay (quadratic) smoothing of a pose track (P, 4, 4) in time: positions and
-    (sign-continuous) quaternions; a quadratic trajectory passes unchanged. Returns (P, 4, 4)."""
+def smooth_poses(t_ns: np.ndarray, T: np.ndarray, window_s: float = 2.0, order: int = 2) -> np.ndarray:
+    """Savitzky-Golay smoothing (polynomial ``order``) of a pose track (P, 4, 4) in time: positions and
+    (sign-continuous) quaternions; a polynomial trajectory of that order passes unchanged. Returns (P, 4, 4)."""
     P = len(t_ns)
     if P < 5:
         return T.copy()
     dt = float(np.median(np.diff(t_ns))) * 1e-9
     win = int(round(window_s / max(dt, 1e-6))) | 1
     win = min(win, P if P % 2 else P - 1)
-    if win < 5:
+    if win < max(5, order + 2):
         return T.copy()
-    pos = savgol_filter(T[:, :3, 3], win, 2, axis=0, mode="interp")
+    pos = savgol_filter(T[:, :3, 3], win, order, axis=0, mode="interp")
     q = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     for i in range(1, P):
         if np.dot(q[i], q[i - 1]) < 0:
             q[i] = -q[i]
-    q = savgol_filter(q, win, 2, axis=0, mode="interp")
+    q = savgol_filter(q, win, order, axis=0, mode="interp")
     return make_T(Rotation.from_quat(q / np.linalg.norm(q, axis=-1, keepdims=True)).as_matrix(), pos)
 
 
-def smoothed_pose_at(cam: CameraCapture, t_ns: np.ndarray, window_s: float = 2.0) -> np.ndarray:
+def smoothed_pose_at(cam: CameraCapture, t_ns: np.ndarray, window_s: float = 2.0, order: int = 2) -> np.ndarray:
     """The camera's drone-pose track smoothed in time (:func:`smooth_poses`) at times (Q,) -> (Q, 4, 4)."""
-    return interpolate_poses(cam.t_pose_ns, smooth_poses(cam.t_pose_ns, cam.T_world_cam, window_s), t_ns)
+    return interpolate_poses(cam.t_pose_ns, smooth_poses(cam.t_pose_ns, cam.T_world_cam, window_s, order), t_ns)
 
 
 @dataclasses.dataclass
@@ -69,7 +69,7 @@ class Observations:
     cam_slices: list  # per camera slice into N
 
 
-def gather(capture: Capture, t_grid_ns: np.ndarray, smooth_window_s: float = 2.0) -> Observations:
+def gather(capture: Capture, t_grid_ns: np.ndarray, smooth_window_s: float = 2.0, smooth_order: int = 2) -> Observations:
     """Flatten the capture's frames (only those within the grid's time span) for fitting."""
     t_grid_ns = np.asarray(t_grid_ns, dtype=np.int64)
     if len(t_grid_ns) < 2:
@@ -91,7 +91,7 @@ def gather(capture: Capture, t_grid_ns: np.ndarray, smooth_window_s: float = 2.0
         parts["conf"].append(np.nan_to_num(cf))
         parts["K"].append(c.K_at(t))
         parts["T"].append(c.pose_at(t))
-        parts["Ts"].append(smoothed_pose_at(c, t, smooth_window_s) if smooth_window_s > 0 else c.pose_at(t))
+        parts["Ts"].append(smoothed_pose_at(c, t, smooth_window_s, smooth_order) if smooth_window_s > 0 else c.pose_at(t))
         parts["ps"].append(ps)
         parts["rs"].append(np.radians(rs))
         slices.append(slice(n0, n0 + len(t)))
