@@ -22,7 +22,7 @@ import numpy as np
 
 from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
 from reconstruction.monocular.dictionary import PoseDictionary, load_dictionary
-from reconstruction.monocular.pipeline import MonocularConfig, reconstruct_monocular
+from reconstruction.monocular.pipeline import MonocularConfig, reconstruct_monocular, to_world_metric
 from skycap.bvh import read_bvh
 from skycap.errors import SkycapError
 from skycap.skeleton import JOINT_GROUPS, mocap_to_coco17
@@ -145,6 +145,11 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
         out["pa_mpjpe_mm_ba_no_articulation"], _ = _score(res.ba_no_articulation.S, view.gt_ned_m)
     if res.ba_extended is not None:
         out["pa_mpjpe_mm_ba_extended"], out["per_joint_mm_extended"] = _score(res.ba_extended.S, view.gt_ned_m)
+    if res.ba_extended is not None and cfg.perspective:
+        # the extended BA placed in the world the rough way (assumed body size, depth from the image size)
+        Xr = to_world_metric(res.ba_extended.S, res.ba_extended.R, view.W_px, res.weights, view.T_world_cam, view.K,
+                             cfg.method.perspective.body_rms_radius_m, frame=res.ba_extended_frame)  # fmt: skip
+        out["mpjpe_mm_ba_extended_rough_world"] = float(mpjpe_mm(Xr, view.gt_ned_m, joints=LIMB_JOINTS))
     if res.ba_perspective is not None:
         Xp = res.ba_perspective.X
         out["pa_mpjpe_mm_ba_perspective"], out["per_joint_mm_perspective"] = _score(np.swapaxes(Xp, 1, 2), view.gt_ned_m)

@@ -12,8 +12,11 @@ the bone lengths b (nL,) (log-parametrised), minimising::
         + (1 / s_P^2)   sum_t ||P_t+1 - 2 P_t + P_t-1||^2 dt^4                    pose smoothness (acceleration)
         + (1 / s_c^2)   sum_t ||c_t+1 - 2 c_t + c_t-1||^2 dt^4                    root smoothness (weak)
         + alpha sqrt(T) sum_i sqrt(lambda_i(P#^T P#) + T eps^2)                    smoothed nuclear norm of P#
+        + (1 / s_r^2)   sum_t ||v_t||^2                                            camera corrections
 
-where rho_GM(r) = r^2 / (1 + r^2) (Geman-McClure, annealed from a wide ``sigma`` down to
+where the camera rotation of frame t is exp([v_t]x) R_cw_t: a small per-frame correction v_t (T, 3) of
+the drone's estimate, which absorbs its attitude and (to first order, as an image shift) position errors,
+and rho_GM(r) = r^2 / (1 + r^2) (Geman-McClure, annealed from a wide ``sigma`` down to
 ``robust_scale_px``), w = confidence x inlier, P# stacks the centred poses as columns (the paper's low-rank
 prior, here in metres in the world frame). The absolute size is not observable from one camera (the
 smoothness and low-rank terms would shrink the body towards the cameras), so the body size is fixed: P is
@@ -51,6 +54,7 @@ class PerspectiveConfig:
     root_acc_sigma_mps2: float = 10.0  # root smoothness (the body centre moves smoothly; also absorbs camera noise)
     alpha: float = 0.1  # smoothed nuclear norm weight (times sqrt(T)), metres
     body_rms_radius_m: float = 0.55  # r0: RMS distance of the 17 joints from their mean (CMU adults ~0.55 m)
+    camera_sigma_deg: float = 3.0  # prior std of the per-frame camera rotation corrections (0 = trust the poses)
     depth_gain: float = 1.0  # preconditioning of the joints' depth (camera z) coordinates
     nuclear_eps_m: float = 0.01  # smoothing of the nuclear norm (per-frame RMS metres)
     iters_per_stage: int = 60
@@ -162,8 +166,11 @@ def perspective_bundle_adjust(
     # preconditioning: a joint's depth is far less constrained than its image position)
     gain = torch.tensor([1.0, 1.0, cfg.depth_gain], dtype=dt)
     P0_cam = np.einsum("tji,tkj->tki", T_wc[:, :3, :3], X0 - c0[:, None]) / np.array([1.0, 1.0, cfg.depth_gain])
-    theta = torch.tensor(np.concatenate([c0.ravel(), P0_cam.ravel(), np.log(np.maximum(bl0, 1e-3)), [0.0]]),
+    # per-frame camera rotation corrections (rotation vectors, camera axes) absorb the drone's pose error
+    n_cam = 3 * T if cfg.camera_sigma_deg > 0 else 0
+    theta = torch.tensor(np.concatenate([c0.ravel(), P0_cam.ravel(), np.log(np.maximum(bl0, 1e-3)), np.zeros(n_cam), [0.0]]),
                          dtype=dt, requires_grad=True)  # fmt: skip
+    sig_cam = np.radians(cfg.camera_sigma_deg) if n_cam else 1.0
     R_wc = R_cw.transpose(1, 2)
     n1, n2 = 3 * T, 3 * T + 3 * T * J
 
@@ -172,20 +179,32 @@ def perspective_bundle_adjust(
         P = torch.einsum("tij,tkj->tki", R_wc, th[n1:n2].view(T, J, 3) * gain)
         P = P - P.mean(dim=1, keepdim=True)
         size = torch.sqrt((P**2).sum(-1).mean(-1) + 1e-12).mean()
-        return root, P * (cfg.body_rms_radius_m / size), th[n2:-1]
+        return root, P * (cfg.body_rms_radius_m / size), th[n2 : n2 + nL]
+
+    def camera_rotations(th):
+        if not n_cam:
+            return R_cw, None
+        v = th[n2 + nL : n2 + nL + n_cam].view(T, 3)
+        Z = torch.zeros(T, dtype=dt)
+        skew = torch.stack([torch.stack([Z, -v[:, 2], v[:, 1]], -1), torch.stack([v[:, 2], Z, -v[:, 0]], -1),
+                            torch.stack([-v[:, 1], v[:, 0], Z], -1)], 1)  # fmt: skip
+        return torch.linalg.matrix_exp(skew) @ R_cw, v
     alpha = cfg.alpha * np.sqrt(T)
     k4 = dt_s**4
     eps = T * cfg.nuclear_eps_m**2  # smoothing: singular values below ~eps_m per frame are not pushed to 0
 
     def objective(sigma: float):
         root, pose, logb = unpack(theta)
+        Rc, v = camera_rotations(theta)
         P = pose - pose.mean(dim=1, keepdim=True)
         X = root[:, None, :] + P
-        Xc = torch.einsum("tij,tkj->tki", R_cw, X - p_w[:, None, :])
+        Xc = torch.einsum("tij,tkj->tki", Rc, X - p_w[:, None, :])
         z = Xc[..., 2:3].clamp(min=0.1)
         uv = fxy * Xc[..., :2] / z + cxy
         r2 = ((uv - tW) ** 2).sum(-1) / sigma**2
         F = (tw * r2 / (1.0 + r2)).sum()
+        if v is not None:
+            F = F + (v**2).sum() / sig_cam**2
         lengths = (X[:, a] - X[:, b]).norm(dim=-1)
         F = F + ((lengths - logb.exp()) ** 2).sum() / cfg.bone_sigma_m**2
         if T >= 3:

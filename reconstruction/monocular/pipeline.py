@@ -9,7 +9,10 @@
 3. multi-frame bundle adjustment (:func:`reconstruction.monocular.ba.bundle_adjust`), the paper's
    objective (``variant="paper"``) or the extended one (``variant="extended"``: temporal smoothness of
    poses and rotations, and, when the drone's camera attitude ``T_world_cam`` is given, a prior pulling
-   R_t to it, with the poses expressed in the world frame).
+   R_t to it, with the poses expressed in the world frame);
+4. optionally (``perspective=True``, needs the camera poses and intrinsics) the perspective BA of
+   :mod:`reconstruction.monocular.perspective` in the world frame (NED metres), started from the paper
+   BA and from the extended BA placed in the world, keeping the lower objective.
 
 Poses come back in the orthographic camera's pixel units; :func:`to_world_metric` places them in the
 world (NED, metres) using the camera poses and an assumed body size.

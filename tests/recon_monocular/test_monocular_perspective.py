@@ -47,7 +47,7 @@ def _scene(T=48, fps=24.0, omega_deg_s=30.0, yaw_rate_deg_s=20.0):
 
 def _cfg(**kw):  # noqa: D103
     r = float(np.sqrt(np.mean(np.sum((_BODY - _BODY.mean(0)) ** 2, -1))))
-    base = dict(body_rms_radius_m=r, stages=2, iters_per_stage=150)
+    base = dict(body_rms_radius_m=r, stages=2, iters_per_stage=150, camera_sigma_deg=0.0)  # exact cameras
     base.update(kw)
     return PerspectiveConfig(**base)
 
