@@ -17,6 +17,17 @@ estimation error, e.g. a GPS bias, which the agent cannot see). Fleet-wide: ``mi
 flight, truth), ``flight_s`` (first take-off to last touch-down, truth above ``airborne_alt_m``).
 
 The computations (:func:`orbit_errors`, :func:`min_pairwise_distance_m`) are plain numpy functions.
+
+Tracking flights (``skycap demo --mode track``): :func:`summarize_tracking` adds, per drone, over the steady
+window (plan start + ``settle_s`` to the land command): ``target_rmse_m`` / ``target_rmse_h_m`` (the drone's
+published fused estimate ``target`` against the true person root, 3D / horizontal, each estimate against the
+truth at its own time), ``person_in_roi_rate`` (own frames whose ROI, planned from the fused estimate before
+the frame's detection was fused, contains the person's exact image box, among frames where the person is in
+the image), ``mpc_solve_ms_median`` / ``mpc_solve_ms_p99`` / ``mpc_fallbacks`` (from ``<drone>.track.json``,
+written by the agent), ``detector_hz`` (own detection messages per second), ``self_pos_err_m_before`` /
+``self_pos_err_m_after`` (RMS 3D error of the drone's reported position against the truth, without / with the
+filter's estimated offset subtracted); fleet: ``min_separation_m`` (truth, steady window) and
+``tracking_lost_s`` (time in the window during which no drone published a ``tracking`` estimate within 1 s).
 """
 
 from __future__ import annotations
@@ -35,7 +46,8 @@ from skycap.errors import SkycapError
 log = logging.getLogger(__name__)
 
 __all__ = ["SummaryError", "orbit_errors", "min_pairwise_distance_m", "yaw_to_center_error_deg_rms", "summarize_flight", "format_table",
-           "save_plan", "load_plan", "write_summary"]
+           "save_plan", "load_plan", "write_summary", "summarize_tracking", "format_tracking_table", "box_in_roi",
+           "lost_time_s"]
 
 
 class SummaryError(SkycapError):
@@ -286,3 +298,166 @@ def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | Non
             out.update(score(sel, "_window"))
             out["window_s"] = [float(window_s[0]), float(window_s[1])]
     return out
+
+
+# ------------------------------------------------------------------------------------------------------------
+# tracking flights
+def box_in_roi(box_xyxy, roi_xywh, tol_px: float = 1.0) -> bool:
+    """Whether the box (x0, y0, x1, y1) lies inside the ROI (x, y, w, h), within tol_px."""
+    x, y, w, h = roi_xywh
+    if w <= 0 or h <= 0:
+        return False
+    return (box_xyxy[0] >= x - tol_px and box_xyxy[1] >= y - tol_px and box_xyxy[2] <= x + w + tol_px
+            and box_xyxy[3] <= y + h + tol_px)
+
+
+def lost_time_s(t_tracking_s: np.ndarray, t0_s: float, t1_s: float, max_gap_s: float = 1.0) -> float:
+    """Seconds of [t0, t1] not within max_gap_s after some time in t_tracking_s (sorted)."""
+    t = np.sort(np.asarray(t_tracking_s, dtype=float))
+    t = t[(t >= t0_s - max_gap_s) & (t <= t1_s)]
+    if len(t) == 0:
+        return float(t1_s - t0_s)
+    covered_until = t0_s
+    lost = 0.0
+    for ti in t:
+        if ti > covered_until:
+            lost += ti - covered_until
+        covered_until = max(covered_until, ti + max_gap_s)
+    lost += max(0.0, t1_s - covered_until)
+    return float(lost)
+
+
+def _interp_rows(t_query: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    return np.stack([np.interp(t_query, t, rows[:, i]) for i in range(rows.shape[1])], axis=1)
+
+
+def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
+    """The tracking figures of a ``--mode track`` flight (see the module doc); reads the recordings."""
+    from onboard.flightlog import FlightLog
+    from shared_msgs import Detections, Keypoints2D, TargetEstimate
+
+    flight_dir = Path(flight_dir)
+    plan = load_plan(flight_dir / "plan.json")
+    drone_ids = sorted(plan.phase_offset_rad, key=lambda d: (len(d), d))
+    tt, person, vpos = [], [], []
+    for m in FlightLog(flight_dir / "truth.mcap").messages():
+        msg = m.msg
+        if not isinstance(msg, SimTruth):
+            continue
+        by_id = {v.drone_id: v for v in msg.vehicles}
+        if not all(d in by_id for d in drone_ids):
+            continue
+        tt.append(msg.header.t_measurement_ns * 1e-9)
+        person.append(msg.person_root_ned_m)
+        vpos.append([by_id[d].position_ned_m for d in drone_ids])
+    if not tt:
+        raise SummaryError(f"{flight_dir / 'truth.mcap'} holds no simulator truth")
+    o = np.argsort(tt)
+    tt = np.asarray(tt)[o]
+    person = np.asarray(person, dtype=float)[o]
+    vpos = np.asarray(vpos, dtype=float)[o]  # (T, D, 3)
+    t_land = math.inf
+    per = {}
+    t_tracking_all = []
+    for k, d in enumerate(drone_ids):
+        t_est, p_est, status, t_state, p_state = [], [], [], [], []
+        rois: dict[int, tuple] = {}
+        gt_boxes: dict[int, tuple] = {}
+        det_t = []
+        for m in FlightLog(flight_dir / f"{d}.mcap").messages(["target", "detections", "sim/keypoints2d_gt", "state", "gcs/cmd"]):
+            msg = m.msg
+            if isinstance(msg, TargetEstimate):
+                t_est.append(msg.header.t_measurement_ns * 1e-9)
+                p_est.append(msg.position_ned_m)
+                status.append(msg.status)
+            elif isinstance(msg, Detections):
+                rois[msg.frame_index] = msg.roi_px
+                det_t.append(msg.header.t_measurement_ns * 1e-9)
+            elif isinstance(msg, Keypoints2D):
+                if msg.persons and msg.persons[0].box is not None:
+                    b = msg.persons[0].box
+                    gt_boxes[msg.frame_index] = (b.x_min_px, b.y_min_px, b.x_max_px, b.y_max_px)
+            elif isinstance(msg, VehicleState):
+                t_state.append(msg.header.t_measurement_ns * 1e-9)
+                p_state.append(msg.position_ned_m)
+            elif isinstance(msg, Command) and msg.action == "land":
+                t_land = min(t_land, msg.header.t_sent_ns * 1e-9)
+        stats_path = flight_dir / f"{d}.track.json"
+        stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
+        per[d] = dict(t_est=np.asarray(t_est), p_est=np.asarray(p_est, dtype=float).reshape(-1, 3), status=status,
+                      rois=rois, gt_boxes=gt_boxes, det_t=np.asarray(sorted(det_t)), t_state=np.asarray(t_state),
+                      p_state=np.asarray(p_state, dtype=float).reshape(-1, 3), stats=stats)
+    t0 = plan.start_time_ns * 1e-9 + settle_s
+    t1 = min(t_land, tt[-1])
+    if t1 - t0 < 2.0:
+        raise SummaryError(f"no steady tracking window in {flight_dir}: fly longer (--duration)")
+    out = {}
+    for k, d in enumerate(drone_ids):
+        P = per[d]
+        sel = (P["t_est"] >= t0) & (P["t_est"] <= t1)
+        if sel.sum():
+            truth_p = _interp_rows(P["t_est"][sel], tt, person)
+            err = P["p_est"][sel] - truth_p
+            rmse = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+            rmse_h = float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))))
+        else:
+            rmse = rmse_h = math.nan
+        t_tracking_all.extend(t for t, s, ok in zip(P["t_est"], P["status"], sel) if s == "tracking")
+        frames = [f for f in P["rois"] if f in P["gt_boxes"]]
+        hits = [box_in_roi(P["gt_boxes"][f], P["rois"][f]) for f in frames]
+        dt_in = P["det_t"][(P["det_t"] >= t0) & (P["det_t"] <= t1)]
+        solve = np.asarray(P["stats"].get("mpc_solve_ms", []), dtype=float)
+        # own position error: reported state vs truth, without / with the filter's offset estimate
+        before = after = math.nan
+        ssel = (P["t_state"] >= t0) & (P["t_state"] <= t1)
+        off = np.asarray(P["stats"].get("offset_log", []), dtype=float).reshape(-1, 4)
+        if ssel.sum() and len(off) >= 2:
+            ts = P["t_state"][ssel]
+            true_p = _interp_rows(ts, tt, vpos[:, k])
+            rep = P["p_state"][ssel]
+            o_t = off[:, 0] * 1e-9
+            oo = np.argsort(o_t)
+            b = _interp_rows(ts, o_t[oo], off[oo, 1:])
+            before = float(np.sqrt(np.mean(np.sum((rep - true_p) ** 2, axis=1))))
+            after = float(np.sqrt(np.mean(np.sum((rep - b - true_p) ** 2, axis=1))))
+        out[d] = {
+            "target_rmse_m": round(rmse, 3),
+            "target_rmse_h_m": round(rmse_h, 3),
+            "target_estimates": int(sel.sum()),
+            "person_in_roi_rate": round(float(np.mean(hits)), 4) if hits else math.nan,
+            "roi_frames": len(hits),
+            "mpc_solve_ms_median": round(float(np.median(solve)), 3) if len(solve) else math.nan,
+            "mpc_solve_ms_p99": round(float(np.percentile(solve, 99)), 3) if len(solve) else math.nan,
+            "mpc_steps": int(len(solve)),
+            "mpc_fallbacks": int(P["stats"].get("mpc_fallbacks", -1)),
+            "detector_hz": round(float(len(dt_in) / (t1 - t0)), 2),
+            "detections_source": P["stats"].get("detections_source", "unknown"),
+            "self_pos_err_m_before": round(before, 3),
+            "self_pos_err_m_after": round(after, 3),
+        }
+    w = (tt >= t0) & (tt <= t1)
+    return {
+        "drones": out,
+        "fleet": {
+            "min_separation_m": round(min_pairwise_distance_m(np.transpose(vpos[w], (1, 0, 2))), 3),
+            "configured_min_separation_m": plan.min_separation_m,
+            "tracking_lost_s": round(lost_time_s(np.asarray(t_tracking_all), t0, t1), 2),
+            "window_s": [round(float(t0), 3), round(float(t1), 3)],
+            "truth_person_reference": "person_root_ned_m",
+        },
+    }
+
+
+def format_tracking_table(tracking: dict) -> str:
+    cols = ["target_rmse_m", "person_in_roi_rate", "mpc_solve_ms_median", "mpc_solve_ms_p99", "mpc_fallbacks",
+            "detector_hz", "self_pos_err_m_before", "self_pos_err_m_after"]
+    short = ["tgt_rmse_m", "in_roi", "mpc_med_ms", "mpc_p99_ms", "fallbacks", "det_hz", "pos_err_m", "pos_err_corr_m"]
+    lines = ["tracking (fused estimate vs true person; own position error without / with the filter's offset)",
+             "drone     " + "".join(f"{s:>15s}" for s in short)]
+    for d, row in tracking["drones"].items():
+        lines.append(f"{d:10s}" + "".join(f"{row[c]:>15.3f}" if isinstance(row[c], float) else f"{row[c]:>15d}"
+                                          for c in cols))
+    f = tracking["fleet"]
+    lines.append(f"fleet: min_separation_m={f['min_separation_m']:.2f} (configured {f['configured_min_separation_m']}), "
+                 f"tracking_lost_s={f['tracking_lost_s']:.1f}")
+    return "\n".join(lines)

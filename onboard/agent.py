@@ -40,6 +40,7 @@ from shared_msgs import (
     CameraInfo,
     Command,
     CommandAck,
+    Detections,
     Health,
     Keypoints2D,
     Message,
@@ -125,6 +126,20 @@ class Agent:
         self._gimbal_sent: tuple[float, float] | None = None
         self._resumes: list[float] = []
         self.acks: list[CommandAck] = []  # for tests and the health report
+        #: latest states of the other drones {drone_id: VehicleState} (the formation MPC avoids them)
+        self.neighbour_states: dict[str, VehicleState] = {}
+        #: active capture (cfg.mode == "track"): the tracking stage and the formation MPC's statistics
+        self.tracking = None
+        self.mpc_solve_ms: list[float] = []
+        self.mpc_fallbacks = 0
+        self._last_target_pub_s = 0.0
+        if cfg.mode == "track":
+            from onboard.tracking.stage import TrackingStage, TrackingStageConfig
+
+            self.tracking = TrackingStage(self.id, TrackingStageConfig(
+                camera_position_sigma_m=cfg.track.camera_position_sigma_m,
+                camera_rotation_sigma_rad=cfg.track.camera_rotation_sigma_rad))
+            self.rates["detections"] = RateMeter()
         autopilot.on_state = self._on_state
 
     # --- keys ----------------------------------------------------------------------------------------
@@ -183,6 +198,19 @@ class Agent:
         node = keys.parse_key(rx.key)[1]
         if node != self.id:
             self.neighbours[node] = (rx.msg.position_ned_m, time.monotonic())
+            self.neighbour_states[node] = rx.msg
+
+    def on_detections(self, rx) -> None:
+        """A teammate's shared detections (track mode): fused into this drone's filter."""
+        if self.tracking is None or not isinstance(rx.msg, Detections):
+            return
+        if keys.parse_key(rx.key)[1] == self.id:
+            return  # our own, already fused
+        self._record(rx.key, rx.data, rx.t_received_ns)
+        try:
+            self.tracking.on_teammate_detections(rx.msg)
+        except Exception:
+            log.exception("%s: fusing %s's detections failed", self.id, rx.msg.header.sender_id)
 
     def on_command(self, rx) -> None:
         self._record(rx.key, rx.data, rx.t_received_ns)
@@ -222,6 +250,15 @@ class Agent:
         msg = rx.msg
         if isinstance(msg, CameraInfo):
             self.camera_info = msg
+            if self.tracking is not None:
+                self.tracking.set_camera_info(msg)
+        elif isinstance(msg, Detections):
+            if self.tracking is not None and rx.key == self.key(keys.SIM_DETECTIONS):
+                self.rates["detections"].tick()
+                try:
+                    self.publish(keys.DETECTIONS, self.tracking.on_own_detections(msg))
+                except Exception:
+                    log.exception("%s: tracking stage failed", self.id)
         elif isinstance(msg, CameraFrame):
             self.rates["frame"].tick()
             for stage in self.perception:
@@ -276,12 +313,80 @@ class Agent:
         st = self.state
         if plan is None or st is None:
             raise RuntimeError("no plan or no vehicle state yet")
-        self.source = OrbitController(plan, self.id, self.cfg.flight.approach_speed_m_s,
-                                      self.cfg.flight.approach_climb_m_s)
+        if self.cfg.mode == "track":
+            self.source = await asyncio.to_thread(self._formation_source, plan)
+        else:
+            self.source = OrbitController(plan, self.id, self.cfg.flight.approach_speed_m_s,
+                                          self.cfg.flight.approach_climb_m_s)
         if not self.autopilot.offboard_active:
             # PX4 refuses offboard without a setpoint stream: let the control loop stream first.
             await asyncio.sleep(max(1.0, 10.0 / self.cfg.rates.setpoint_hz))
             await self.autopilot.start_offboard()
+
+    def _formation_source(self, plan: OrbitPlan):
+        """The formation MPC as the setpoint source (track mode): keep ``plan.radius_m`` / ``altitude_m``
+        from the person at this drone's slot angle; fly to ``plan.center_ned_m`` (the operator's approximate
+        start position of the person) until the filter has a track."""
+        from onboard.formation.mpc import FormationMPC, MpcConfig
+        from onboard.formation.source import FormationSource
+        from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M
+
+        t = self.cfg.track
+        mc = MpcConfig(horizon_steps=t.mpc_horizon_steps, dt_s=t.mpc_dt_s, radius_m=plan.radius_m,
+                       altitude_m=plan.altitude_m, min_separation_m=plan.min_separation_m,
+                       max_speed_h_m_s=min(t.max_speed_h_m_s, plan.max_speed_m_s),
+                       min_altitude_m=min(self.cfg.safety.min_altitude_m, plan.altitude_m),
+                       max_altitude_m=max(self.cfg.safety.max_altitude_m, plan.altitude_m + 1.0),
+                       person_keepout_m=min(t.person_keepout_m, 0.75 * plan.radius_m))
+        t0 = time.monotonic()
+        src = FormationSource(FormationMPC(self.id, mc), plan.phase_offset_rad[self.id],
+                              ground_down_m=float(plan.center_ned_m[2]), plan_timeout_s=t.plan_timeout_s)
+        log.info("%s: formation MPC built in %.1f s", self.id, time.monotonic() - t0)
+        guess = np.asarray(plan.center_ned_m, dtype=float) - [0.0, 0.0, 0.5 * PERSON_HEIGHT_PRIOR_M]
+        src.set_target(guess, np.zeros(3))
+        self._target_guess = guess
+        return src
+
+    def _feed_formation(self, src, t_s: float) -> np.ndarray:
+        """Before an MPC step: the fused person estimate and the teammates' states; returns this drone's
+        estimated position offset (reported - true, (3,), zeros without a track)."""
+        offset = np.zeros(3)
+        if self.tracking is not None:
+            est = self.tracking.estimate(int(t_s * 1e9))
+            if est is not None:
+                src.set_target(est.position_ned_m, est.velocity_ned_m_s)
+                offset = np.asarray(est.offset_ned_m, dtype=float)
+        for d, st in self.neighbour_states.items():
+            src.set_teammate_state(d, st.header.t_measurement_ns, st.position_ned_m, st.velocity_ned_m_s)
+        return offset
+
+    def _note_formation(self, src) -> None:
+        r = src.last_result
+        if r is not None and r is not getattr(self, "_last_mpc_result", None):
+            self._last_mpc_result = r
+            self.mpc_solve_ms.append(1e3 * r.solve_time_s)
+            self.mpc_fallbacks = src.mpc.fallback_count
+
+    def publish_target(self) -> None:
+        if self.tracking is None:
+            return
+        msg = self.tracking.target_message(time.time_ns())
+        if msg is not None:
+            self.publish(keys.TARGET, msg)
+
+    def tracking_stats(self) -> dict:
+        """What the flight summary needs from this agent's tracking (written next to its recording)."""
+        tr = self.tracking
+        return {
+            "drone_id": self.id,
+            "mode": self.cfg.mode,
+            "detections_source": self.cfg.track.detections,
+            "mpc_solve_ms": [round(v, 3) for v in self.mpc_solve_ms],
+            "mpc_fallbacks": int(self.mpc_fallbacks),
+            "offset_log": [] if tr is None else [list(r) for r in tr.offset_log],
+            "counts": {} if tr is None else dict(tr.counts),
+            "filter_stats": {} if tr is None else dict(vars(tr.filter.stats)),
+        }
 
     # --- loops ----------------------------------------------------------------------------------------
     async def control_loop(self) -> None:
@@ -292,8 +397,16 @@ class Agent:
             src, st = self.source, self.state
             if src is not None and st is not None:
                 try:
-                    sp = src.update(time.time(), np.asarray(st.position_ned_m), np.asarray(st.velocity_ned_m_s),
+                    t_s = time.time()
+                    formation = hasattr(src, "set_teammate_state")
+                    offset = self._feed_formation(src, t_s) if formation else np.zeros(3)
+                    # track mode: plan in the filter's frame (own position corrected by the estimated GPS
+                    # offset), then back to the autopilot's frame for the setpoint
+                    sp = src.update(t_s, np.asarray(st.position_ned_m) - offset, np.asarray(st.velocity_ned_m_s),
                                     yaw_from_q(st.q_world_body))
+                    if formation:
+                        self._note_formation(src)
+                        sp.position_ned_m = sp.position_ned_m + offset
                     await self.autopilot.set_setpoint(sp)
                     self.last_setpoint = sp
                     self.rates["setpoint"].tick()
@@ -327,6 +440,9 @@ class Agent:
             await asyncio.sleep(period)
             self.supervise_once()
             now = time.monotonic()
+            if self.tracking is not None and now - self._last_target_pub_s >= 1.0 / self.cfg.track.target_publish_hz - 1e-3:
+                self._last_target_pub_s = now
+                self.publish_target()
             if now - t_health >= 1.0 / self.cfg.rates.health_hz:
                 t_health = now
                 self.publish(keys.HEALTH, self.health())
@@ -435,6 +551,11 @@ class Agent:
         sub(keys.gcs_key(cfg.fleet, keys.CMD), self.on_command, Command)
         sub(keys.gcs_key(cfg.fleet, keys.PLAN), self.on_plan, OrbitPlan)
         sub(keys.all_drones_key(cfg.fleet, keys.STATE), self.on_neighbour_state, VehicleState)
+        if self.tracking is not None:
+            sub(keys.all_drones_key(cfg.fleet, keys.DETECTIONS), self.on_detections, Detections)
+            if not cfg.record_camera:
+                for topic in (keys.CAMERA_INFO, keys.SIM_DETECTIONS):
+                    sub(self.key(topic), self.on_camera, None)
         if cfg.record_camera:
             # the simulator camera also sends exact keypoints and simulated detections: kept for evaluation
             for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D, keys.SIM_KEYPOINTS2D_GT,
@@ -517,6 +638,15 @@ async def run_agent(cfg: AgentConfig) -> int:
     try:
         await agent.run(stop)
     finally:
+        if cfg.mode == "track" and cfg.record.enabled:
+            import json
+            from pathlib import Path
+
+            try:
+                p = Path(cfg.record.dir) / f"{cfg.drone_id}.track.json"
+                p.write_text(json.dumps(agent.tracking_stats()))
+            except Exception as e:
+                log.error("%s: writing the tracking statistics failed: %s", cfg.drone_id, e)
         if recorder is not None:
             recorder.close()
         bus.close()

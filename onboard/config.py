@@ -11,7 +11,7 @@ from pathlib import Path
 from onboard.transport import TransportConfig
 from skycap.config import ConfigError
 
-__all__ = ["AgentConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
+__all__ = ["AgentConfig", "TrackConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
 
 
 @dataclass
@@ -91,6 +91,32 @@ class OriginConfig:
 
 
 @dataclass
+class TrackConfig:
+    """Active capture (``mode = "track"``): cooperative person tracking and the formation MPC.
+
+    The plan's ``center_ned_m`` is the operator's approximate start position of the person (flown to until
+    the first detection is fused), ``radius_m`` / ``altitude_m`` the distance and height kept from the
+    person, ``phase_offset_rad`` the slot angles, ``min_separation_m`` the separation limit.
+    """
+
+    #: where this drone's own detections come from: "sim" = the simulator's box detector
+    #: (``<drone>/sim/detections``, labelled ``detector="simulated"``)
+    detections: str = "sim"
+    mpc_horizon_steps: int = 15
+    mpc_dt_s: float = 0.1
+    max_speed_h_m_s: float = 5.0
+    person_keepout_m: float = 4.0
+    #: this drone's position / attitude uncertainty (1 sigma) sent with its detections (GNSS grade: ~1 m GPS,
+    #: ~0.05 m RTK)
+    camera_position_sigma_m: float = 1.0
+    camera_rotation_sigma_rad: float = 0.017
+    #: TargetEstimate publishing rate on ``<drone>/target``
+    target_publish_hz: float = 10.0
+    #: teammate plans/states older than this are not avoided (s)
+    plan_timeout_s: float = 1.0
+
+
+@dataclass
 class AgentConfig:
     """Top-level configuration of one drone's agent."""
 
@@ -109,8 +135,17 @@ class AgentConfig:
     transport: TransportConfig = field(default_factory=TransportConfig)
     #: record the simulator's keypoints (sim/keypoints2d) and camera frames of this drone
     record_camera: bool = True
+    #: "orbit" (fly the plan's circle around its centre) or "track" (find and follow the person: detections
+    #: -> cooperative filter -> formation MPC around the fused estimate; see :class:`TrackConfig`)
+    mode: str = "orbit"
+    track: TrackConfig = field(default_factory=TrackConfig)
 
     def validate(self) -> "AgentConfig":
+        if self.mode not in ("orbit", "track"):
+            raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
+        if self.track.detections != "sim":
+            raise ConfigError(f"track.detections={self.track.detections!r}: only 'sim' (the simulator's detector on "
+                              "sim/detections) is wired into the agent so far")
         for name in ("gcs_loss_action", "low_battery_action"):
             v = getattr(self.safety, name)
             if v not in ("land", "return", "hold"):

@@ -3,6 +3,13 @@
     skycap demo --out flights/demo                     # 3 drones, 60 s of orbit
     skycap demo --drones 2 --duration 20 --out /tmp/f --set orbit.radius_m=6
     skycap demo --set rtk=false                        # GPS-grade position estimate (m-level bias) instead of RTK
+    skycap demo --mode track --out flights/track       # active capture: find and follow the person
+
+``--mode track`` (active capture): each agent fuses its own and its teammates' person detections (simulated
+detector, ``<drone>/sim/detections``) in its cooperative filter, publishes the fused target and flies the
+formation MPC around it, starting from the operator's approximate start position of the person
+(``track.start_guess_ned_m``); GPS-grade position estimate by default (``track.rtk``) so that the filter's
+own-offset correction shows. The summary then adds the tracking figures (see :mod:`groundstation.summary`).
 
 What it launches (each an OS process, as on the real system; logs in ``<out>/logs/``):
 
@@ -58,6 +65,17 @@ class OrbitDemoConfig:
 
 
 @dataclass
+class TrackDemoConfig:
+    """``--mode track``: the formation keeps ``orbit.radius_m`` / ``orbit.altitude_m`` from the person at
+    equal angles (``orbit.angular_speed_rad_s`` is not used)."""
+
+    #: the operator's approximate start position of the person (world NED m; the person starts near the origin)
+    start_guess_ned_m: list[float] = field(default_factory=lambda: [1.5, -1.0, 0.0])
+    #: RTK-grade estimate in track mode (default off: GPS-grade bias, which the cooperative filter estimates)
+    rtk: bool = False
+
+
+@dataclass
 class DemoConfig:
     """Configuration of ``skycap demo`` (``--config demo.toml``, ``--set orbit.radius_m=6``)."""
 
@@ -84,6 +102,9 @@ class DemoConfig:
     agent_set: list[str] = field(default_factory=list)
     cameras: bool = True
     reconstruct: bool = True
+    #: "orbit" (the plan's circle around the centre) or "track" (active capture, see TrackDemoConfig)
+    mode: str = "orbit"
+    track: TrackDemoConfig = field(default_factory=TrackDemoConfig)
     #: timeouts (s)
     ready_timeout_s: float = 60.0
     takeoff_timeout_s: float = 60.0
@@ -96,6 +117,10 @@ class DemoConfig:
 
         if not 1 <= self.drones <= 20:
             raise ConfigError(f"drones={self.drones}: use 1..20")
+        if self.mode not in ("orbit", "track"):
+            raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
+        if self.mode == "track" and not self.cameras:
+            raise ConfigError("mode='track' needs the cameras (cameras=true): the drones find the person in them")
         if self.duration_s < self.settle_s + 5:
             raise ConfigError(f"duration_s={self.duration_s} leaves no steady orbit after settle_s={self.settle_s}; "
                               f"use --duration {self.settle_s + 10:.0f} or more")
@@ -108,6 +133,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--drones", type=int, default=None, help="number of drones (default 3)")
     p.add_argument("--duration", type=float, default=None, help="seconds of orbit (default 60)")
     p.add_argument("--out", type=Path, default=None, help="flight folder (default flights/demo)")
+    p.add_argument("--mode", choices=("orbit", "track"), default=None,
+                   help="orbit (default): circle the plan's centre; track: find and follow the person (active capture)")
     add_config_args(p)
     p.set_defaults(func=_run)
 
@@ -115,7 +142,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from skycap.config import config_from_args
 
-    cfg = config_from_args(DemoConfig, args, {"drones": args.drones, "duration_s": args.duration, "out": args.out})
+    cfg = config_from_args(DemoConfig, args, {"drones": args.drones, "duration_s": args.duration, "out": args.out,
+                                                "mode": getattr(args, "mode", None)})
     summary = run_demo(cfg.validate())
     return 0 if summary is not None else 1
 
@@ -195,7 +223,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     out = Path(cfg.out)
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    for old in [*out.glob("drone_*.mcap"), out / "truth.mcap", out / "summary.json", out / "plan.json"]:
+    track = cfg.mode == "track"
+    for old in [*out.glob("drone_*.mcap"), *out.glob("drone_*.track.json"), out / "truth.mcap", out / "summary.json",
+                out / "plan.json"]:
         old.unlink(missing_ok=True)
     ids = _drone_ids(cfg.drones)
     phases = evenly_spaced_phases(ids)
@@ -204,7 +234,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if cfg.orbit.spawn_under_slots:
         spawn = ", ".join(f"[{n}, {e}]" for n, e in _spawn_positions(cfg, phases))
         sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")
-    if cfg.rtk:
+    if (cfg.track.rtk if track else cfg.rtk):
         sim_set += ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
     sim_set += cfg.sim_set
     save_config(cfg, out / "config.toml")
@@ -239,6 +269,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             cmd = py + ["agent", "--drone-id", d, "--fleet", cfg.fleet, "--connection",
                         f"udpin://0.0.0.0:{cfg.mavlink_base + i}", "--record-dir", str(out),
                         "--zenoh-connect", cfg.zenoh_endpoint]
+            if track:
+                cmd += ["--set", "mode=track", "--set",
+                        f"track.camera_position_sigma_m={0.05 if cfg.track.rtk else 1.0}"]
             for s in cfg.agent_set:
                 cmd += ["--set", s]
             procs.start(d, cmd)
@@ -258,14 +291,17 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         if not fleet.wait_until(all_(lambda f, d: f.healths[d].state == "hover"), cfg.takeoff_timeout_s, "hover"):
             raise SkycapError(f"not every drone reached hover within {cfg.takeoff_timeout_s:.0f} s; see {logs}")
         o = cfg.orbit
-        plan = make_orbit_plan(ids, tuple(o.center_ned_m), o.radius_m, o.altitude_m, o.angular_speed_rad_s, o.direction,
+        # track mode: the plan's centre is the operator's approximate start position of the person, its slots
+        # the formation's angles (no turning: the formation follows the person)
+        center = tuple(cfg.track.start_guess_ned_m) if track else tuple(o.center_ned_m)
+        plan = make_orbit_plan(ids, center, o.radius_m, o.altitude_m, 0.0 if track else o.angular_speed_rad_s, o.direction,
                                start_in_s=o.start_in_s, min_separation_m=o.min_separation_m, phase_offset_rad=phases)
         save_plan(plan, out / "plan.json")
         fleet.send_plan(plan)
         _require(fleet.wait_acks(plan.plan_id, ids, 5), ids, "plan")
         _require(fleet.command("start", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "start")
         t_orbit_end = plan.start_time_ns * 1e-9 + cfg.duration_s
-        log.info("orbiting for %.0f s", cfg.duration_s)
+        log.info("%s for %.0f s", "tracking" if track else "orbiting", cfg.duration_s)
         next_table = time.time()
         while time.time() < t_orbit_end:
             procs.check_alive()
@@ -305,12 +341,21 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         else:
             log.info("no 'skycap reconstruct' command in this build: skipping reconstruction")
     summary = summarize_flight(out, settle_s=cfg.settle_s)
+    if track:
+        from groundstation.summary import summarize_tracking
+
+        summary["mode"] = "track"
+        summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
     if recon.get("exit_code") == 0:
         # simulated flight: score the reconstruction against the simulator's truth (all frames, steady orbit)
         recon["accuracy_vs_truth"] = reconstruction_accuracy(out, window_s=summary["fleet"]["steady_orbit_window_s"])
     summary["reconstruction"] = recon
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(format_table(summary), flush=True)
+    if track:
+        from groundstation.summary import format_tracking_table
+
+        print(format_tracking_table(summary["tracking"]), flush=True)
     acc = recon.get("accuracy_vs_truth") or {}
     if acc:
         print(f"reconstruction vs truth: steady orbit MPJPE {acc.get('mpjpe_mm_window', float('nan')):.1f} mm, "

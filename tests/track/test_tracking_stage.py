@@ -1,0 +1,99 @@
+"""The agent's tracking stage (pure logic): Detections of three drones -> fused estimate, own-offset
+estimate, ROI planned from the estimate; and the tracking summary helpers."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tracking"))
+from tracking_scene import CAM, drone_positions, look_at_pose, person_center  # noqa: E402
+
+from groundstation.summary import box_in_roi, lost_time_s
+from onboard.tracking.measurement import box_from_person
+from onboard.tracking.stage import TrackingStage
+from shared_msgs.messages import BoundingBox, CameraInfo, Detections
+
+
+def _info() -> CameraInfo:
+    return CameraInfo(header=CameraInfo.make_header("drone_0", 0), camera_id="cam", width_px=CAM.width_px,
+                      height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px)
+
+
+def _detections(k: int, t_s: float, frame: int, rng, offset=np.zeros(3), px_sigma=2.0) -> tuple[Detections, np.ndarray]:
+    cam_true = drone_positions(t_s, 3)[k]
+    p = person_center(t_s)
+    T_true = look_at_pose(cam_true, p)
+    box_true, _ = box_from_person(p, CAM, T_true)
+    box = box_true + rng.normal(0, px_sigma, 4)
+    T_rep = T_true.copy()
+    T_rep[:3, 3] += offset
+    v = px_sigma**2
+    det = Detections(
+        header=Detections.make_header(f"drone_{k}", int(t_s * 1e9), frame), camera_id="cam", frame_index=frame,
+        detector="simulated", mode="simulated",
+        boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9,
+                           var_x_min_px2=v, var_y_min_px2=v, var_x_max_px2=v, var_y_max_px2=v)],
+        width_px=CAM.width_px, height_px=CAM.height_px, T_world_cam=tuple(T_rep.reshape(-1)),
+        T_world_cam_cov=tuple(np.diag([0.25] * 3 + [1e-5] * 3).reshape(-1)))
+    return det, box_true
+
+
+def test_stage_fuses_teammates_estimates_own_offset_and_plans_rois():
+    rng = np.random.default_rng(3)
+    offset = np.array([1.2, -0.8, 0.4])  # drone_0's GPS offset (reported = true + offset)
+    stage = TrackingStage("drone_0")
+    stage.set_camera_info(_info())
+    hits, errs = [], []
+    rate, dur = 5.0, 40.0
+    for i in range(int(dur * rate)):
+        for k in range(3):
+            t = i / rate + k / (3 * rate)
+            det, box_true = _detections(k, t, i, rng, offset if k == 0 else np.zeros(3))
+            if k == 0:
+                shared = stage.on_own_detections(det)
+                assert shared.header.sender_id == "drone_0" and shared.boxes == det.boxes
+                if t > 5.0:
+                    hits.append(box_in_roi(box_true, shared.roi_px))
+            else:
+                stage.on_teammate_detections(det)
+        est = stage.estimate(int(t * 1e9))
+        if t > 10.0:
+            errs.append(np.linalg.norm(est.position_ned_m - person_center(t)))
+    assert np.sqrt(np.mean(np.square(errs))) < 0.3
+    assert np.mean(hits) > 0.95
+    est = stage.estimate(int(dur * 1e9))
+    # the filter's offset converges towards drone_0's true GPS offset
+    assert np.linalg.norm(est.offset_ned_m - offset) < 0.5, est.offset_ned_m
+    msg = stage.target_message(int(dur * 1e9))
+    assert msg.status == "tracking" and msg.num_sources == 3 and msg.header.sender_id == "drone_0"
+    assert len(stage.offset_log) == stage.counts["own_frames"]
+    assert stage.counts["teammate_measurements"] == 2 * stage.counts["own_frames"]
+
+
+def test_stage_without_track_plans_full_frame_and_publishes_nothing():
+    stage = TrackingStage("drone_0")
+    assert stage.target_message(0) is None
+    rng = np.random.default_rng(0)
+    det, _ = _detections(0, 0.0, 0, rng)
+    # no camera info yet: nothing can be fused, ROI empty
+    out = stage.on_own_detections(det)
+    assert out.roi_px == (0.0, 0.0, 0.0, 0.0) and not stage.filter.initialised
+    stage.set_camera_info(_info())
+    out = stage.on_own_detections(det)
+    assert out.roi_px == (0.0, 0.0, 0.0, 0.0)  # first frame: no track yet -> full-frame search
+    assert stage.last_plan.search and stage.filter.initialised
+
+
+def test_box_in_roi_and_lost_time():
+    assert box_in_roi((10, 10, 20, 20), (5, 5, 20, 20))
+    assert not box_in_roi((10, 10, 30, 20), (5, 5, 20, 20))
+    assert not box_in_roi((10, 10, 20, 20), (0, 0, 0, 0))
+    assert lost_time_s(np.arange(0, 10, 0.1), 0.0, 10.0) == pytest.approx(0.0)
+    assert lost_time_s(np.array([]), 0.0, 10.0) == pytest.approx(10.0)
+    # a 3 s hole: covered 1 s after the last estimate before it
+    t = np.concatenate([np.arange(0, 4, 0.1), np.arange(7, 10, 0.1)])
+    assert lost_time_s(t, 0.0, 10.0) == pytest.approx(7.0 - 3.9 - 1.0, abs=1e-6)
