@@ -129,6 +129,13 @@ def _gm(e2: torch.Tensor, s: float) -> torch.Tensor:
     return s * s * e2 / (e2 + s * s)
 
 
+def _huber(e2: torch.Tensor, k: float) -> torch.Tensor:
+    """Huber on squared normalised residuals: e^2 inside k, linear beyond (a bad sample loses its pull,
+    but the track never escapes its GPS/IMU prior altogether, unlike a redescending kernel)."""
+    e = torch.sqrt(e2 + 1e-12)
+    return torch.where(e <= k, e2, 2 * k * e - k * k)
+
+
 def _rotvec_to_R(w: torch.Tensor) -> torch.Tensor:
     return sk.axis_angle_to_matrix(w)
 
@@ -261,7 +268,7 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
             e_p = 3.0 * ((pss - p_raw_s) ** 2).sum(-1) / ps**2
             dR = Rs @ R_raw_s.transpose(-1, -2)
             e_r = 3.0 * (torch.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1) ** 2).sum(-1) / 4 / rs**2
-            E_cam = cfg.w_cam_prior * 0.5 * (_gm(e_p, 9.0).sum() + _gm(e_r, 9.0).sum())
+            E_cam = cfg.w_cam_prior * 0.5 * (_huber(e_p, 3.0).sum() + _huber(e_r, 3.0).sum())
             # motion smoothness of the corrections (second differences at the knots)
             for k0_, k1_ in knot_runs:
                 ap = (dp[k0_ + 2 : k1_] - 2 * dp[k0_ + 1 : k1_ - 1] + dp[k0_ : k1_ - 2]) / dt_knot**2
