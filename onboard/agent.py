@@ -136,7 +136,12 @@ class Agent:
         if cfg.mode == "track":
             from onboard.tracking.stage import TrackingStage, TrackingStageConfig
 
+            from onboard.tracking.measurement import MeasurementConfig
+            from onboard.tracking.roi import RoiConfig
+
             self.tracking = TrackingStage(self.id, TrackingStageConfig(
+                measurement=MeasurementConfig(person_height_m=cfg.track.person_height_m),
+                roi=RoiConfig(person_height_m=cfg.track.person_height_m),
                 camera_position_sigma_m=cfg.track.camera_position_sigma_m,
                 camera_rotation_sigma_rad=cfg.track.camera_rotation_sigma_rad))
             self.rates["detections"] = RateMeter()

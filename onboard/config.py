@@ -110,6 +110,9 @@ class TrackConfig:
     #: ~0.05 m RTK)
     camera_position_sigma_m: float = 1.0
     camera_rotation_sigma_rad: float = 0.017
+    #: the person's height as the detector's box sees it (head top to feet, m): the range prior of the
+    #: height-prior measurement and the ROI size (an operator enters the subject's height)
+    person_height_m: float = 1.69
     #: TargetEstimate publishing rate on ``<drone>/target``
     target_publish_hz: float = 10.0
     #: teammate plans/states older than this are not avoided (s)

@@ -71,6 +71,10 @@ class TrackDemoConfig:
 
     #: the operator's approximate start position of the person (world NED m; the person starts near the origin)
     start_guess_ned_m: list[float] = field(default_factory=lambda: [1.5, -1.0, 0.0])
+    #: the person's box height given to the agents (m): the simulator's person box (from the projected body
+    #: ellipsoids, head top to soles) measures ~1.95 m (range ratio truth / 1.69 m-prior measurement on GT boxes
+    #: of a track flight: median 1.14-1.18, i.e. 1.93-1.99 m)
+    person_height_m: float = 1.95
     #: RTK-grade estimate in track mode (default off: GPS-grade bias, which the cooperative filter estimates)
     rtk: bool = False
 
@@ -271,7 +275,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                         "--zenoh-connect", cfg.zenoh_endpoint]
             if track:
                 cmd += ["--set", "mode=track", "--set",
-                        f"track.camera_position_sigma_m={0.05 if cfg.track.rtk else 1.0}"]
+                        f"track.camera_position_sigma_m={0.05 if cfg.track.rtk else 1.0}", "--set",
+                        f"track.person_height_m={cfg.track.person_height_m}"]
             for s in cfg.agent_set:
                 cmd += ["--set", s]
             procs.start(d, cmd)

@@ -1,0 +1,48 @@
+"""``skycap demo --mode track`` end to end, short (2 drones): simulator, cameras, agents with the tracking
+stage and the formation MPC; checks the tracking figures of summary.json loosely (CI is a loaded 2-core box)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from onboard.transport import free_tcp_port
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demo"))
+from test_demo_e2e import free_udp_base  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+
+def test_short_track_demo_follows_the_person(tmp_path):
+    out = tmp_path / "track"
+    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--mode", "track", "--drones", "2", "--duration", "22",
+           "--out", str(out), "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"",
+           "--set", f"mavlink_base={free_udp_base(2)}", "--set", "fleet=\"tracktest\"", "--set", "reconstruct=false"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
+    for name in ("drone_1.mcap", "drone_2.mcap", "drone_1.track.json", "drone_2.track.json", "truth.mcap", "summary.json"):
+        assert (out / name).exists(), name
+    s = json.loads((out / "summary.json").read_text())
+    assert s["mode"] == "track"
+    tr = s["tracking"]
+    assert set(tr["drones"]) == {"drone_1", "drone_2"}
+    for d, row in tr["drones"].items():
+        assert row["detections_source"] == "sim", row
+        assert row["target_estimates"] > 20, row
+        # GPS-grade position estimates (~1 m bias per drone, unobservable in common): loose bound
+        assert row["target_rmse_m"] < 2.0, row
+        assert row["roi_frames"] > 30 and row["person_in_roi_rate"] > 0.6, row
+        assert row["mpc_steps"] > 100 and row["mpc_solve_ms_median"] < 30.0, row
+        assert row["mpc_fallbacks"] >= 0
+        assert row["detector_hz"] > 3.0, row
+        assert math.isfinite(row["self_pos_err_m_before"]) and math.isfinite(row["self_pos_err_m_after"]), row
+    f = tr["fleet"]
+    assert f["min_separation_m"] > f["configured_min_separation_m"], f
+    assert f["tracking_lost_s"] < 5.0, f
+    assert "tgt_rmse_m" in r.stdout  # the printed tracking table
