@@ -41,6 +41,7 @@ from shared_msgs import (
     Command,
     CommandAck,
     Detections,
+    FormationPlan,
     Health,
     Keypoints2D,
     Message,
@@ -132,14 +133,19 @@ class Agent:
         self.tracking = None
         self.mpc_solve_ms: list[float] = []
         self.mpc_fallbacks = 0
+        self.teammate_plans_received = 0
         self._last_target_pub_s = 0.0
         if cfg.mode == "track":
             from onboard.tracking.stage import TrackingStage, TrackingStageConfig
 
+            from onboard.tracking.filter import TrackerConfig
             from onboard.tracking.measurement import MeasurementConfig
             from onboard.tracking.roi import RoiConfig
 
             self.tracking = TrackingStage(self.id, TrackingStageConfig(
+                # the own-position offset's prior: this drone's positioning grade (GPS ~1 m, RTK ~5 cm)
+                tracker=TrackerConfig(offset_sigma_m=cfg.track.camera_position_sigma_m,
+                                      velocity_sigma_m_s=cfg.track.person_velocity_sigma_m_s),
                 measurement=MeasurementConfig(person_height_m=cfg.track.person_height_m),
                 roi=RoiConfig(person_height_m=cfg.track.person_height_m),
                 camera_position_sigma_m=cfg.track.camera_position_sigma_m,
@@ -366,11 +372,33 @@ class Agent:
         return offset
 
     def _note_formation(self, src) -> None:
+        """After an MPC step: its statistics, and its plan shared with the teammates (``formation/plan``)."""
         r = src.last_result
         if r is not None and r is not getattr(self, "_last_mpc_result", None):
             self._last_mpc_result = r
             self.mpc_solve_ms.append(1e3 * r.solve_time_s)
             self.mpc_fallbacks = src.mpc.fallback_count
+            pl = r.plan
+            msg = FormationPlan(header=FormationPlan.make_header(self.id, int(pl.t0_ns)), t0_ns=int(pl.t0_ns),
+                                dt_s=float(pl.dt_s), fallback=bool(r.fallback),
+                                positions_ned_m=tuple(float(v) for v in np.asarray(pl.positions_ned_m).reshape(-1)))
+            self.publish(keys.FORMATION_PLAN, msg)
+
+    def on_formation_plan(self, rx) -> None:
+        """A teammate's shared MPC plan (track mode): avoided by this drone's MPC."""
+        from onboard.formation.mpc import SharedPlan
+
+        msg = rx.msg
+        node = keys.parse_key(rx.key)[1]
+        src = self.source
+        if node == self.id or not isinstance(msg, FormationPlan) or not hasattr(src, "set_teammate_plan"):
+            return
+        pos = np.asarray(msg.positions_ned_m, dtype=float)
+        if pos.size < 6 or pos.size % 3 or not np.all(np.isfinite(pos)):
+            log.warning("%s: ignoring a malformed formation plan from %s (%d floats)", self.id, node, pos.size)
+            return
+        src.set_teammate_plan(SharedPlan(node, int(msg.t0_ns), float(msg.dt_s), pos.reshape(-1, 3)))
+        self.teammate_plans_received += 1
 
     def publish_target(self) -> None:
         if self.tracking is None:
@@ -388,6 +416,7 @@ class Agent:
             "detections_source": self.cfg.track.detections,
             "mpc_solve_ms": [round(v, 3) for v in self.mpc_solve_ms],
             "mpc_fallbacks": int(self.mpc_fallbacks),
+            "teammate_plans_received": int(self.teammate_plans_received),
             "offset_log": [] if tr is None else [list(r) for r in tr.offset_log],
             "counts": {} if tr is None else dict(tr.counts),
             "filter_stats": {} if tr is None else dict(vars(tr.filter.stats)),
@@ -558,6 +587,7 @@ class Agent:
         sub(keys.all_drones_key(cfg.fleet, keys.STATE), self.on_neighbour_state, VehicleState)
         if self.tracking is not None:
             sub(keys.all_drones_key(cfg.fleet, keys.DETECTIONS), self.on_detections, Detections)
+            sub(keys.all_drones_key(cfg.fleet, keys.FORMATION_PLAN), self.on_formation_plan, FormationPlan)
             if not cfg.record_camera:
                 for topic in (keys.CAMERA_INFO, keys.SIM_DETECTIONS):
                     sub(self.key(topic), self.on_camera, None)

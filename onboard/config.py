@@ -113,6 +113,8 @@ class TrackConfig:
     #: the person's height as the detector's box sees it (head top to feet, m): the range prior of the
     #: height-prior measurement and the ROI size (an operator enters the subject's height)
     person_height_m: float = 1.69
+    #: stationary std of the person's velocity in the filter (walking: ~1 m/s)
+    person_velocity_sigma_m_s: float = 1.0
     #: TargetEstimate publishing rate on ``<drone>/target``
     target_publish_hz: float = 10.0
     #: teammate plans/states older than this are not avoided (s)

@@ -16,6 +16,7 @@ messages inside carry their own per-type schema version.
 | ``skycap/v1/<fleet>/<drone>/sim/keypoints2d_gt`` | Keypoints2D (simulated=True) | simulator camera | exact projections, detector "ground_truth" |
 | ``skycap/v1/<fleet>/<drone>/sim/detections`` | Detections (mode "simulated") | simulator camera | simulated person boxes |
 | ``skycap/v1/<fleet>/<drone>/target`` | TargetEstimate | agent | |
+| ``skycap/v1/<fleet>/<drone>/formation/plan`` | FormationPlan | agent (track mode) | MPC plan shared with teammates |
 | ``skycap/v1/<fleet>/<drone>/ack`` | CommandAck | agent | answers to commands and plans |
 | ``skycap/v1/<fleet>/gcs/cmd`` | Command | ground station | ``target`` field selects drones |
 | ``skycap/v1/<fleet>/gcs/plan`` | OrbitPlan | ground station | latest plan (agents also query it) |
@@ -97,6 +98,7 @@ SIM_KEYPOINTS2D = "sim/keypoints2d"
 SIM_KEYPOINTS2D_GT = "sim/keypoints2d_gt"
 SIM_DETECTIONS = "sim/detections"
 TARGET = "target"
+FORMATION_PLAN = "formation/plan"
 ACK = "ack"
 CMD = "cmd"
 PLAN = "plan"

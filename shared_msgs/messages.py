@@ -33,6 +33,7 @@ __all__ = [
     "PersonKeypoints",
     "Keypoints2D",
     "TargetEstimate",
+    "FormationPlan",
     "OrbitPlan",
     "Command",
     "CommandAck",
@@ -189,6 +190,17 @@ class TargetEstimate(Message, tag="target_estimate"):
     num_sources: int = 0
 
 
+class FormationPlan(Message, tag="formation_plan"):
+    """A drone's planned positions over the formation MPC's horizon, shared with its teammates (they keep
+    their own plans on their side of the bisecting planes: buffered Voronoi cells)."""
+
+    SCHEMA_VERSION: ClassVar[int] = 1
+    t0_ns: int  #: time of the first position
+    dt_s: float  #: step between positions
+    positions_ned_m: tuple[float, ...]  #: (N + 1) x 3 floats, north, east, down of each step
+    fallback: bool = False  #: the plan is the brake-and-hold fallback
+
+
 class OrbitPlan(Message, tag="orbit_plan"):
     """A shared orbit around a point: every drone flies its phase slot of one circle.
 
@@ -274,6 +286,7 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     Detections,
     Keypoints2D,
     TargetEstimate,
+    FormationPlan,
     OrbitPlan,
     Command,
     CommandAck,

@@ -31,6 +31,7 @@ from shared_msgs.messages import (
     PersonKeypoints,
     SimTruth,
     TargetEstimate,
+    FormationPlan,
     VehicleState,
     VehicleTruth,
 )
@@ -94,6 +95,10 @@ def examples() -> dict[str, Message]:
             header=hdr(TargetEstimate, "drone_2", 57), position_ned_m=(20.0, 5.5, 0.0),
             velocity_ned_m_s=(0.75, -0.25, 0.0), covariance=tuple(0.1 if i % 7 == 0 else 0.0 for i in range(36)),
             status="tracking", num_sources=3,
+        ),
+        FormationPlan(
+            header=hdr(FormationPlan, "drone_3", 41), t0_ns=T0 + 2_000_000_000, dt_s=0.1,
+            positions_ned_m=tuple(0.5 * i for i in range(9)), fallback=False,
         ),
         OrbitPlan(
             header=hdr(OrbitPlan, "gcs", 2), plan_id="plan-0002", center_ned_m=(20.0, 5.5, 0.0), radius_m=12.0,

@@ -42,6 +42,10 @@ def test_short_track_demo_follows_the_person(tmp_path):
         assert row["mpc_fallbacks"] >= 0
         assert row["detector_hz"] > 3.0, row
         assert math.isfinite(row["self_pos_err_m_before"]) and math.isfinite(row["self_pos_err_m_after"]), row
+    for d in ("drone_1", "drone_2"):
+        stats = json.loads((out / f"{d}.track.json").read_text())
+        assert stats["teammate_plans_received"] > 50, stats  # the teammate's MPC plans (formation/plan) arrive
+        assert stats["filter_stats"]["accepted"] > 50, stats["filter_stats"]
     f = tr["fleet"]
     assert f["min_separation_m"] > f["configured_min_separation_m"], f
     assert f["tracking_lost_s"] < 5.0, f
