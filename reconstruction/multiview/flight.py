@@ -12,7 +12,8 @@ A flight folder holds one MCAP per drone, ``drone_<i>.mcap`` (:mod:`onboard.reco
   person with the highest mean confidence in each message.
 
 Camera pose: ``T_world_cam = T_world_cam_from_pose(position, R_yaw, gimbal_pitch, gimbal_yaw)`` with
-the gimbal angles of the latest ``camera_info``; the gimbal is taken to stabilise roll and pitch
+the gimbal angles and the mount's lever arm (translation of ``T_body_cam``) of the latest ``camera_info``;
+the gimbal is taken to stabilise roll and pitch
 (``R_yaw`` = the vehicle's yaw only), as :func:`skycap.frames.T_world_cam_from_pose` documents; pass
 ``gimbal_stabilised=False`` for a camera fixed to the body.
 """
@@ -72,8 +73,9 @@ def read_drone_log(path: str | Path, gimbal_stabilised: bool = True) -> CameraCa
         i = int(np.clip(np.searchsorted(t_info, t, side="right") - 1, 0, len(infos) - 1))
         w, x, y, z = s.q_world_body
         R = Rotation.from_quat([x, y, z, w]).as_matrix()
+        lever = np.asarray(infos[i].T_body_cam, dtype=float).reshape(4, 4)[:3, 3] if len(infos[i].T_body_cam) == 16 else None
         T_list.append(T_world_cam_from_pose(np.array(s.position_ned_m), _yaw_only(R) if gimbal_stabilised else R,
-                                            infos[i].gimbal_pitch_rad, infos[i].gimbal_yaw_rad))  # fmt: skip
+                                            infos[i].gimbal_pitch_rad, infos[i].gimbal_yaw_rad, lever))  # fmt: skip
         t_pose.append(t)
         ps.append(float(np.sqrt(np.sum(s.position_cov_m2))))
         rs.append(float(np.degrees(np.sqrt(np.sum(s.attitude_cov_rad2)))))
@@ -115,12 +117,38 @@ def read_flight(flight_dir: str | Path, gimbal_stabilised: bool = True) -> Captu
     return Capture(cams, meta={"source": "flight", "flight_dir": str(flight_dir)})
 
 
-def output_grid(capture: Capture, rate_hz: float | None = None) -> np.ndarray:
-    """Output times: the span all cameras see, at ``rate_hz`` (default: the cameras' median frame rate)."""
-    t0 = max(int(c.t_frame_ns[0]) for c in capture.cameras if c.num_frames)
-    t1 = min(int(c.t_frame_ns[-1]) for c in capture.cameras if c.num_frames)
+def seen_span_ns(capture: Capture, min_cameras: int = 2, min_joints: int = 8, min_conf: float = 0.3) -> tuple[int, int]:
+    """The time span in which at least ``min_cameras`` cameras see the person.
+
+    A camera sees the person in a frame when ``min_joints`` keypoints (best detector) reach ``min_conf``. The span
+    runs from the time the ``min_cameras``-th camera first sees the person to the time the ``min_cameras``-th last
+    camera last sees them: take-off and landing, when the cameras look at the ground or the sky, are left out.
+    """
+    firsts, lasts = [], []
+    for c in capture.cameras:
+        if not c.num_frames:
+            continue
+        seen = (c.confidence.max(axis=1) >= min_conf).sum(axis=-1) >= min_joints
+        if seen.any():
+            t = c.t_frame_ns[seen]
+            firsts.append(int(t[0]))
+            lasts.append(int(t[-1]))
+    if len(firsts) < min_cameras:
+        raise CaptureError(
+            f"only {len(firsts)} camera(s) see the person (>= {min_joints} keypoints at confidence >= {min_conf}); "
+            f"multiview reconstruction needs {min_cameras}: check the keypoints of the flight or use --method monocular"
+        )
+    t0 = sorted(firsts)[min_cameras - 1]
+    t1 = sorted(lasts)[-min_cameras]
     if t1 <= t0:
-        raise CaptureError("the cameras' recordings do not overlap in time")
+        raise CaptureError(f"no time in which {min_cameras} cameras see the person at once")
+    return t0, t1
+
+
+def output_grid(capture: Capture, rate_hz: float | None = None) -> np.ndarray:
+    """Output times: the span in which at least two cameras see the person (:func:`seen_span_ns`), at
+    ``rate_hz`` (default: the cameras' median frame rate)."""
+    t0, t1 = seen_span_ns(capture)
     if rate_hz is None:
         rate_hz = float(np.median([1e9 / np.median(np.diff(c.t_frame_ns)) for c in capture.cameras if c.num_frames > 1]))
     return np.arange(t0, t1 + 1, int(round(1e9 / rate_hz)), dtype=np.int64)
