@@ -13,11 +13,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe_machine  # noqa: E402
 
 CLK = os.sysconf("SC_CLK_TCK")
 
@@ -99,8 +101,7 @@ def main() -> int:
         time.sleep(1.0)
     reader.join(5)
     wall = time.monotonic() - t0
-    print(f"machine: {platform.node()} {platform.machine()}, {os.cpu_count()} CPUs, {platform.python_version()}, "
-          f"load during run shared with other work")
+    print(f"machine: {describe_machine()} (load average sampled at the end of the run)")
     print(f"skycap demo --drones {args.drones} --duration {args.duration:.0f}: exit {proc.returncode}, wall {wall:.0f} s\n")
     rows = []
     by_name: dict[str, list] = {}
