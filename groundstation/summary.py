@@ -106,6 +106,15 @@ def yaw_to_center_error_deg_rms(center_ned_m, pos_ned_m: np.ndarray, yaw_rad: np
     return float(np.degrees(np.sqrt(np.mean(_wrap_rad(yaw_rad - bearing) ** 2))))
 
 
+def _finite_or_none(x: float, ndigits: int = 3) -> float | None:
+    """JSON has no infinity: a distance with nothing to measure (one drone) is None."""
+    return round(float(x), ndigits) if math.isfinite(x) else None
+
+
+def _fmt_m(x: float | None) -> str:
+    return "n/a (one drone)" if x is None else f"{x:.2f}"
+
+
 def min_pairwise_distance_m(pos_ned_m: np.ndarray) -> float:
     """Smallest distance between two drones at the same instant; pos_ned_m: (D, T, 3). inf for D < 2."""
     D = pos_ned_m.shape[0]
@@ -209,7 +218,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
         "plan_id": plan.plan_id,
         "drones": out_drones,
         "fleet": {
-            "min_separation_m": round(min_pairwise_distance_m(pos), 3),
+            "min_separation_m": _finite_or_none(min_pairwise_distance_m(pos)),
             "configured_min_separation_m": plan.min_separation_m,
             "flight_s": round(flight_s, 2),
             "steady_orbit_s": round(float(t_end - t_start), 2),
@@ -230,7 +239,7 @@ def format_table(summary: dict) -> str:
         lines.append(f"{d:10s}" + "".join(f"{row[c]:>14.3f}" if isinstance(row[c], float) else f"{row[c]:>14d}"
                                           for c in cols))
     f = summary["fleet"]
-    lines.append(f"fleet: min_separation_m={f['min_separation_m']:.2f} (configured {f['configured_min_separation_m']}), "
+    lines.append(f"fleet: min_separation_m={_fmt_m(f['min_separation_m'])} (configured {f['configured_min_separation_m']}), "
                  f"flight_s={f['flight_s']:.1f}, steady_orbit_s={f['steady_orbit_s']:.1f}")
     return "\n".join(lines)
 
@@ -454,7 +463,7 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
     return {
         "drones": out,
         "fleet": {
-            "min_separation_m": round(min_pairwise_distance_m(np.transpose(vpos[w], (1, 0, 2))), 3),
+            "min_separation_m": _finite_or_none(min_pairwise_distance_m(np.transpose(vpos[w], (1, 0, 2)))),
             "configured_min_separation_m": plan.min_separation_m,
             "tracking_lost_s": round(lost_time_s(np.asarray(t_tracking_all), t0, t1), 2),
             "window_s": [round(float(t0), 3), round(float(t1), 3)],
@@ -473,6 +482,6 @@ def format_tracking_table(tracking: dict) -> str:
         lines.append(f"{d:10s}" + "".join(f"{row[c]:>15.3f}" if isinstance(row[c], float) else f"{row[c]:>15d}"
                                           for c in cols))
     f = tracking["fleet"]
-    lines.append(f"fleet: min_separation_m={f['min_separation_m']:.2f} (configured {f['configured_min_separation_m']}), "
+    lines.append(f"fleet: min_separation_m={_fmt_m(f['min_separation_m'])} (configured {f['configured_min_separation_m']}), "
                  f"tracking_lost_s={f['tracking_lost_s']:.1f}")
     return "\n".join(lines)

@@ -355,7 +355,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
     if recon.get("exit_code") == 0:
         # simulated flight: score the reconstruction against the simulator's truth (all frames, steady orbit)
-        recon["accuracy_vs_truth"] = reconstruction_accuracy(out, window_s=summary["fleet"]["steady_orbit_window_s"])
+        npz = (recon.get("summary") or {}).get("outputs", {}).get("npz")  # where the method wrote its motion
+        recon["accuracy_vs_truth"] = reconstruction_accuracy(out, motion_npz=npz,
+                                                             window_s=summary["fleet"]["steady_orbit_window_s"])
     summary["reconstruction"] = recon
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(format_table(summary), flush=True)

@@ -76,18 +76,25 @@ def reconstruct_capture(
     if cam.num_frames < 10:
         raise CaptureError(f"camera {cam.name!r} has {cam.num_frames} frames with keypoints; need at least 10")
     det = int(np.argmax(cam.confidence.mean(axis=(0, 2))))
-    conf = cam.confidence[:, det]
-    W = np.swapaxes(cam.keypoints_px[:, det], 1, 2)
+    # only the span in which the camera sees the person (take-off and landing look at the ground or the sky)
+    seen = np.flatnonzero((cam.confidence[:, det] >= 0.3).sum(axis=-1) >= 8)
+    if len(seen) < 10:
+        raise CaptureError(f"camera {cam.name!r} sees the person (>= 8 keypoints at confidence >= 0.3) in {len(seen)} "
+                           f"frames; need at least 10")
+    span = slice(int(seen[0]), int(seen[-1]) + 1)
+    t_frame_ns = cam.t_frame_ns[span]
+    conf = cam.confidence[span, det]
+    W = np.swapaxes(cam.keypoints_px[span, det], 1, 2)
     W = np.where((conf > 0)[:, None, :], W, np.nan)
-    T_wc = cam.pose_at(cam.t_frame_ns)
-    K = cam.K_at(cam.t_frame_ns)
+    T_wc = cam.pose_at(t_frame_ns)
+    K = cam.K_at(t_frame_ns)
     d = load_dictionary()
     if variant not in ("paper", "extended", "perspective"):
         raise CaptureError(f"variant must be 'paper', 'extended' or 'perspective', not {variant!r}")
     persp = variant == "perspective"
     if persp and body_rms_radius_m is not None:
         cfg = dataclasses.replace(cfg, perspective=dataclasses.replace(cfg.perspective, body_rms_radius_m=body_rms_radius_m))
-    dt_s = float(np.median(np.diff(cam.t_frame_ns))) * 1e-9
+    dt_s = float(np.median(np.diff(t_frame_ns))) * 1e-9
     res = reconstruct_monocular(W, conf, d, cfg, T_world_cam=T_wc, extended=variant != "paper", K=K, perspective=persp, dt_s=dt_s)
     if variant == "extended" and res.ba_extended is not None:
         ba, frame = res.ba_extended, res.ba_extended_frame
@@ -105,13 +112,13 @@ def reconstruct_capture(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.toml")
-    cams = [{"name": cam.name, "t_ns": cam.t_frame_ns, "T_world_cam": T_wc, "K": K[-1], "width_px": cam.width_px,
+    cams = [{"name": cam.name, "t_ns": t_frame_ns, "T_world_cam": T_wc, "K": K[-1], "width_px": cam.width_px,
              "height_px": cam.height_px}]  # fmt: skip
     params = {"S_orthographic_px": ba.S, "R_orthographic": ba.R, "weights": res.weights, "init_S_px": res.init.S}
-    paths = export_motion(out, joints, cam.t_frame_ns, params=params, cameras=cams, capture=cap, rrd=rrd)
+    paths = export_motion(out, joints, t_frame_ns, params=params, cameras=cams, capture=cap, rrd=rrd)
     summary = {
         "method": "monocular", "variant": variant, "camera": cam.name, "detector": cam.detectors[det],
-        "frames": int(cam.num_frames), "init_seconds": res.init_seconds, "ba_seconds": res.ba_seconds,
+        "frames": int(len(t_frame_ns)), "init_seconds": res.init_seconds, "ba_seconds": res.ba_seconds,
         "perspective_seconds": res.perspective_seconds,
         "body_rms_radius_m": radius, "outputs": {k: str(v) for k, v in paths.items()},
     }  # fmt: skip
