@@ -227,17 +227,23 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
     }
 
 
+def _drone_table(title: str, drones: dict[str, dict], cols: list[str], short: list[str], width: int) -> list[str]:
+    """Title, header and one row per drone (floats with 3 decimals, ints as they are)."""
+    lines = [title, "drone     " + "".join(f"{s:>{width}s}" for s in short)]
+    for d, row in drones.items():
+        lines.append(f"{d:10s}" + "".join(f"{row[c]:>{width}.3f}" if isinstance(row[c], float) else f"{row[c]:>{width}d}"
+                                          for c in cols))
+    return lines
+
+
 def format_table(summary: dict) -> str:
     cols = ["setpoint_rate_hz", "orbit_radius_rmse_m", "altitude_rmse_m", "phase_error_deg_rms",
             "phase_spacing_error_deg_rms", "yaw_to_center_error_deg_rms", "orbit_radius_rmse_est_m", "altitude_rmse_est_m", "phase_error_est_deg_rms", "frames_recorded",
             "image_rate_hz", "state_rate_hz"]
     short = ["setpt_hz", "radius_m", "alt_m", "phase_deg", "spacing_deg", "yaw_deg", "radius_est_m", "alt_est_m", "phase_est_deg", "frames",
              "img_hz", "state_hz"]
-    lines = ["errors are RMS against the true trajectory (radius_m, alt_m, phase) and the vehicle's estimate (*_est_m)",
-             "drone     " + "".join(f"{s:>14s}" for s in short)]
-    for d, row in summary["drones"].items():
-        lines.append(f"{d:10s}" + "".join(f"{row[c]:>14.3f}" if isinstance(row[c], float) else f"{row[c]:>14d}"
-                                          for c in cols))
+    lines = _drone_table("errors are RMS against the true trajectory (radius_m, alt_m, phase) and the vehicle's "
+                         "estimate (*_est_m)", summary["drones"], cols, short, 14)
     f = summary["fleet"]
     lines.append(f"fleet: min_separation_m={_fmt_m(f['min_separation_m'])} (configured {f['configured_min_separation_m']}), "
                  f"flight_s={f['flight_s']:.1f}, steady_orbit_s={f['steady_orbit_s']:.1f}")
@@ -476,11 +482,8 @@ def format_tracking_table(tracking: dict) -> str:
     cols = ["target_rmse_m", "target_rmse_fleet_frame_m", "person_in_roi_rate", "mpc_solve_ms_median", "mpc_solve_ms_p99", "mpc_fallbacks",
             "detector_hz", "self_pos_err_m_before", "self_pos_err_m_after"]
     short = ["tgt_rmse_m", "tgt_rmse_ff_m", "in_roi", "mpc_med_ms", "mpc_p99_ms", "fallbacks", "det_hz", "pos_err_m", "pos_err_corr_m"]
-    lines = ["tracking (fused estimate vs true person; own position error without / with the filter's offset)",
-             "drone     " + "".join(f"{s:>15s}" for s in short)]
-    for d, row in tracking["drones"].items():
-        lines.append(f"{d:10s}" + "".join(f"{row[c]:>15.3f}" if isinstance(row[c], float) else f"{row[c]:>15d}"
-                                          for c in cols))
+    lines = _drone_table("tracking (fused estimate vs true person; own position error without / with the filter's "
+                         "offset)", tracking["drones"], cols, short, 15)
     f = tracking["fleet"]
     lines.append(f"fleet: min_separation_m={_fmt_m(f['min_separation_m'])} (configured {f['configured_min_separation_m']}), "
                  f"tracking_lost_s={f['tracking_lost_s']:.1f}")

@@ -5,34 +5,15 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-
-def free_udp_base(n: int) -> int:
-    """A base port with ``n`` consecutive free UDP ports (agents bind base+i)."""
-    for _ in range(200):
-        base = int(np.random.default_rng().integers(30000, 60000))
-        socks = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                s.bind(("0.0.0.0", base + i))
-                socks.append(s)
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free UDP port range")
+from onboard.transport import free_udp_base
 
 
 class Flight:

@@ -9,29 +9,8 @@ import sys
 
 import pytest
 
-from onboard.transport import free_tcp_port
+from onboard.transport import free_tcp_port, free_udp_base
 
-
-def free_udp_base(n: int) -> int:
-    """A base port with ``n`` consecutive free UDP ports."""
-    import random
-    import socket
-
-    for _ in range(200):
-        base = random.randint(30000, 60000)
-        socks = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                s.bind(("0.0.0.0", base + i))
-                socks.append(s)
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free UDP port range")
 
 pytestmark = pytest.mark.slow
 

@@ -7,14 +7,10 @@ import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-from onboard.transport import free_tcp_port
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demo"))
-from test_demo_e2e import free_udp_base  # noqa: E402
+from onboard.transport import free_tcp_port, free_udp_base
 
 pytestmark = pytest.mark.slow
 
