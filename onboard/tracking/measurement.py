@@ -10,6 +10,15 @@ A person detection is an image box with per-edge pixel variance, taken by a came
   small-angle assumption) and degrades gracefully; when the camera looks nearly straight down (top and
   bottom rays nearly parallel to the vertical) the range is unobservable and it raises
   :class:`DegenerateGeometryError` (use ``mode="bearing"``).
+* **height prior and ground** (``mode="height_and_ground"``, the default of
+  :func:`measurements_from_detections`): a person's feet are on the ground far more reliably than the person
+  stands straight (crouching, bending and sitting shrink the box by up to half, which the height prior reads
+  as a person twice as far away). The bottom-centre ray meets the ground plane ``down = ground_down_m``
+  (uncertain by ``ground_sigma_m``: uneven ground, jumps); the centre is half the prior height above it. The
+  two range estimates are fused with their information matrices (edges, height/ground spread only), fixed
+  at the nominal point, and the fused point is propagated like the others. Looking down steeply the ground
+  term dominates, looking near the horizon the height term does. When the ground ray misses (camera below
+  the ground plane, ray above the horizon) it is the height prior alone.
 * **bearing only** (``mode="bearing"``): the ray through the box centre placed at ``range_hint_m`` (from the
   filter's prediction), or, without a hint, the ray through the box's bottom centre (the feet) meeting the
   ground plane ``down = ground_down_m``, raised by half the prior height; the covariance is wide (``bearing_range_sigma_m``) along the ray, so in a Kalman
@@ -56,7 +65,7 @@ log = logging.getLogger(__name__)
 PERSON_HEIGHT_PRIOR_M = 1.69
 """Prior height of a standing person (AirCap's value), metres."""
 
-MeasurementMode = Literal["height_prior", "bearing"]
+MeasurementMode = Literal["height_and_ground", "height_prior", "bearing"]
 
 
 class MeasurementError(SkycapError, ValueError):
@@ -91,7 +100,10 @@ class CameraIntrinsics:
 @dataclasses.dataclass(frozen=True)
 class MeasurementConfig:
     person_height_m: float = PERSON_HEIGHT_PRIOR_M
-    person_height_sigma_m: float = 0.08  #: adult height spread plus posture (not standing straight)
+    #: adult height spread plus posture (crouching/bending shrink the box; the ground term covers that)
+    person_height_sigma_m: float = 0.15
+    ground_sigma_m: float = 0.15  #: the feet's height above the ground plane (uneven ground, steps, jumps)
+    mode: MeasurementMode = "height_and_ground"  #: the model :func:`measurements_from_detections` uses
     min_edge_var_px2: float = 4.0  #: floor for the per-edge variance (detectors report 0 = unknown)
     bearing_range_sigma_m: float = 200.0  #: along-ray std of a bearing-only measurement
     min_vertical_parallax_rad: float = math.radians(10.0)  #: view ray must be at least this far from the vertical
@@ -171,6 +183,17 @@ def _height_prior_point(
     return c + 0.5 * (a * r_top + b * r_bot)
 
 
+def _ground_point(edges: np.ndarray, h: float, g: float, c: np.ndarray, R_wc: np.ndarray, K_inv: np.ndarray, ground_down_m: float) -> np.ndarray:
+    """Centre of an upright person of height h whose feet (bottom-centre ray) stand g metres above the plane
+    ``down = ground_down_m``; raises :class:`MeasurementError` when the ray does not meet that plane ahead."""
+    r = _rays(K_inv, R_wc, np.array([[0.5 * (edges[0] + edges[2]), edges[3]]]))[0]
+    plane = ground_down_m - g
+    if r[2] <= 1e-6 or plane <= c[2]:
+        raise MeasurementError("the box's bottom ray does not meet the ground plane below the camera; pass range_hint_m or use mode='height_prior'")
+    feet = c + r * (plane - c[2]) / r[2]
+    return feet - np.array([0.0, 0.0, 0.5 * h])
+
+
 def _bearing_point(edges: np.ndarray, c: np.ndarray, R_wc: np.ndarray, K_inv: np.ndarray, range_m: float) -> np.ndarray:
     x0, y0, x1, y1 = edges
     r = _rays(K_inv, R_wc, np.array([[0.5 * (x0 + x1), 0.5 * (y0 + y1)]]))[0]
@@ -235,58 +258,85 @@ def measurement_from_box(
     R0, c0 = T[:3, :3], T[:3, 3]
     H = config.person_height_m
 
-    if mode == "bearing":
+    if mode == "height_and_ground":
+        try:
+            _ground_point(edges, H, 0.0, c0, R0, K_inv, ground_down_m)
+        except MeasurementError:
+            mode = "height_prior"  # the feet cannot be put on the ground from here: height prior alone
+    if mode == "height_and_ground":
+        # information weights of the two range estimates, from their own spreads (edges + height / ground)
+        def jac(f, n_extra):
+            Jf = np.zeros((3, 4 + n_extra))
+            for i in range(4 + n_extra):
+                d = np.zeros(4 + n_extra)
+                d[i] = 0.5 if i < 4 else 0.01
+                Jf[:, i] = (f(edges + d[:4], *(d[4:] )) - f(edges - d[:4], *(-d[4:]))) / (2 * d[i])
+            return Jf
+
+        Jh = jac(lambda e, dh: _height_prior_point(e, H + dh, c0, R0, K_inv, config.min_vertical_parallax_rad), 1)
+        Jg = jac(lambda e, dg: _ground_point(e, H, dg, c0, R0, K_inv, ground_down_m), 1)
+        C_h = Jh @ np.diag([*np.maximum(ev, config.min_edge_var_px2), config.person_height_sigma_m**2]) @ Jh.T
+        C_g = Jg @ np.diag([*np.maximum(ev, config.min_edge_var_px2), config.ground_sigma_m**2]) @ Jg.T
+        # the ground point's vertical is the height prior's (centre = feet + H/2): give it the height spread too
+        C_g = C_g + np.diag([0.0, 0.0, (0.5 * config.person_height_sigma_m) ** 2])
+        reg = 1e-6 * np.eye(3)
+        I_h, I_g = np.linalg.inv(C_h + reg), np.linalg.inv(C_g + reg)
+        C_f = np.linalg.inv(I_h + I_g)
+        A_h, A_g = C_f @ I_h, C_f @ I_g
+
+        def model(e, h, dc, dth, g=0.0):
+            R = _rotvec_matrix(dth) @ R0
+            c = c0 + dc
+            return A_h @ _height_prior_point(e, h, c, R, K_inv, config.min_vertical_parallax_rad) + A_g @ _ground_point(e, h, g, c, R, K_inv, ground_down_m)
+
+    elif mode == "bearing":
         if range_hint_m is None:
             # feet: the bottom-centre ray meets the ground plane; the centre is half the height above it
-            def model(e, h, dc, dth):
+            def model(e, h, dc, dth, g=0.0):
                 R = _rotvec_matrix(dth) @ R0
-                c = c0 + dc
-                r = _rays(K_inv, R, np.array([[0.5 * (e[0] + e[2]), e[3]]]))[0]
-                if r[2] <= 1e-6 or ground_down_m <= c[2]:
-                    raise MeasurementError("bearing ray does not meet the ground plane below the camera; pass range_hint_m")
-                feet = c + r * (ground_down_m - c[2]) / r[2]
-                return feet - np.array([0.0, 0.0, 0.5 * H])
+                return _ground_point(e, H, g, c0 + dc, R, K_inv, ground_down_m)
 
         else:
             range_m = float(range_hint_m)
             if not (math.isfinite(range_m) and range_m > 0):
                 raise MeasurementError(f"range_hint_m must be finite and > 0, got {range_hint_m}")
 
-            def model(e, h, dc, dth):
+            def model(e, h, dc, dth, g=0.0):
                 R = _rotvec_matrix(dth) @ R0
                 return _bearing_point(e, c0 + dc, R, K_inv, range_m)
 
     elif mode == "height_prior":
 
-        def model(e, h, dc, dth):
+        def model(e, h, dc, dth, g=0.0):
             R = _rotvec_matrix(dth) @ R0
             return _height_prior_point(e, h, c0 + dc, R, K_inv, config.min_vertical_parallax_rad)
 
     else:
-        raise MeasurementError(f"unknown measurement mode {mode!r}; use 'height_prior' or 'bearing'")
+        raise MeasurementError(f"unknown measurement mode {mode!r}; use 'height_and_ground', 'height_prior' or 'bearing'")
 
     z0 = np.zeros(3)
     p = model(edges, H, z0, z0)
-    if mode == "height_prior":
+    if mode in ("height_prior", "height_and_ground"):
         # in front of the camera
         if (R0.T @ (p - c0))[2] <= 0:
             raise MeasurementError("the measured person lies behind the camera; check T_world_cam")
 
-    # Jacobian by central differences over (4 edges, height, 3 cam position, 3 cam rotation)
-    steps = np.array([0.5] * 4 + [0.01] + [0.01] * 3 + [1e-4] * 3)
-    J = np.zeros((3, 11))
+    # Jacobian by central differences over (4 edges, height, 3 cam position, 3 cam rotation, ground height)
+    steps = np.array([0.5] * 4 + [0.01] + [0.01] * 3 + [1e-4] * 3 + [0.01])
+    J = np.zeros((3, 12))
     for i, s in enumerate(steps):
-        dp = np.zeros(11)
+        dp = np.zeros(12)
         dp[i] = s
-        args_p = (edges + dp[:4], H + dp[4], dp[5:8], dp[8:11])
-        args_m = (edges - dp[:4], H - dp[4], -dp[5:8], -dp[8:11])
+        args_p = (edges + dp[:4], H + dp[4], dp[5:8], dp[8:11], dp[11])
+        args_m = (edges - dp[:4], H - dp[4], -dp[5:8], -dp[8:11], -dp[11])
         J[:, i] = (model(*args_p) - model(*args_m)) / (2 * s)
     if mode == "bearing":
         J[:, 4] = 0.0
-    Sigma_in = np.zeros((11, 11))
+    Sigma_in = np.zeros((12, 12))
     Sigma_in[:4, :4] = np.diag(ev)
     Sigma_in[4, 4] = config.person_height_sigma_m**2
-    Sigma_in[5:, 5:] = pose_cov
+    Sigma_in[5:11, 5:11] = pose_cov
+    Sigma_in[11, 11] = config.ground_sigma_m**2
     cov = J @ Sigma_in @ J.T
     Sigma_nc = Sigma_in.copy()
     Sigma_nc[5:8, :] = 0.0
@@ -315,7 +365,7 @@ def measurements_from_detections(
     det: Detections,
     intrinsics: CameraIntrinsics,
     *,
-    mode: MeasurementMode = "height_prior",
+    mode: MeasurementMode | None = None,
     fallback_to_bearing: bool = True,
     range_hint_m: float | None = None,
     ground_down_m: float = 0.0,
@@ -323,7 +373,9 @@ def measurements_from_detections(
     config: MeasurementConfig = MeasurementConfig(),
 ) -> list[PositionMeasurement]:
     """Every usable "person" box of a :class:`Detections` message -> measurements (bad boxes are skipped
-    and logged; a degenerate height-prior geometry falls back to bearing mode when allowed)."""
+    and logged; a degenerate height-prior geometry falls back to bearing mode when allowed). ``mode`` None =
+    ``config.mode``."""
+    mode = config.mode if mode is None else mode
     if len(det.T_world_cam) != 16:
         raise MeasurementError(f"Detections.T_world_cam must have 16 floats, got {len(det.T_world_cam)}")
     T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4)

@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -46,26 +47,31 @@ def test_height_prior_off_centre_and_rolled_camera():
     assert np.linalg.norm(m.position_ned_m - person) < 0.15
 
 
-def test_covariance_elongated_along_ray_and_matches_monte_carlo():
+@pytest.mark.parametrize("mode", ["height_prior", "height_and_ground"])
+def test_covariance_elongated_along_ray_and_matches_monte_carlo(mode):
+    from onboard.tracking.measurement import MeasurementConfig
+
     rng = np.random.default_rng(0)
     cam = np.array([0.0, 0.0, -8.0])
     person = np.array([8.0, 0.0, -PERSON_HALF_H])
     T = look_at_pose(cam, person)
     box, _ = box_from_person(person, CAM, T)
     var = np.full(4, 9.0)
-    m = measurement_from_box(box, CAM, T, POSE_COV, edge_var_px2=var)
+    cfg = MeasurementConfig(person_height_sigma_m=0.08, ground_sigma_m=0.15)
+    m = measurement_from_box(box, CAM, T, POSE_COV, edge_var_px2=var, mode=mode, config=cfg)
+    assert np.linalg.norm(m.position_ned_m - person) < 0.02
     w, V = np.linalg.eigh(m.cov_m2)
     ray = (person - cam) / np.linalg.norm(person - cam)
     assert abs(V[:, -1] @ ray) > 0.98, "largest uncertainty must lie along the viewing ray"
     assert w[-1] > 20 * w[1]
-    # Monte Carlo over edge noise and the height prior
+    # Monte Carlo over edge noise, the height prior and (height_and_ground) the ground's height
     samples = []
     for _ in range(3000):
         b = box + rng.normal(0, 3.0, 4)
-        from onboard.tracking.measurement import MeasurementConfig
-
         h = 1.69 + rng.normal(0, 0.08)
-        mm = measurement_from_box(b, CAM, T, POSE_COV, edge_var_px2=var, config=MeasurementConfig(person_height_m=h))
+        g = rng.normal(0, 0.15) if mode == "height_and_ground" else 0.0
+        mm = measurement_from_box(b, CAM, T, POSE_COV, edge_var_px2=var, mode=mode, ground_down_m=-g,
+                                  config=dataclasses.replace(cfg, person_height_m=h))
         samples.append(mm.position_ned_m)
     emp = np.cov(np.array(samples).T)
     along_pred, along_emp = ray @ m.cov_m2 @ ray, ray @ emp @ ray
@@ -131,3 +137,34 @@ def test_bad_input_raises_clear_errors():
         measurement_from_box(np.array([1.0, np.nan, 3, 4]), CAM, T)
     with pytest.raises(MeasurementError, match="empty box"):
         measurement_from_box(np.array([10.0, 10, 5, 40]), CAM, T)
+
+
+def test_crouching_person_stays_on_the_ground_with_the_ground_term():
+    """A crouch shrinks the box to 60 % of a standing person's: the height prior alone reads it as a person
+    ~1.7x farther away (and below the ground); the feet-on-ground term keeps it where the feet are."""
+    cam = np.array([0.0, 0.0, -8.0])
+    person = np.array([8.0, 0.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T)
+    crouch = np.array(box, dtype=float)
+    crouch[1] = crouch[3] - 0.6 * (crouch[3] - crouch[1])  # head lowered, feet where they were
+    h_only = measurement_from_box(crouch, CAM, T, POSE_COV, mode="height_prior")
+    fused = measurement_from_box(crouch, CAM, T, POSE_COV, mode="height_and_ground")
+    assert np.linalg.norm(h_only.position_ned_m[:2] - person[:2]) > 3.0
+    assert np.linalg.norm(fused.position_ned_m[:2] - person[:2]) < 0.6
+    assert fused.position_ned_m[2] < 0.0, "the fused centre stays above the ground"
+    # standing: both agree with the truth
+    for mode in ("height_prior", "height_and_ground"):
+        assert np.linalg.norm(measurement_from_box(box, CAM, T, POSE_COV, mode=mode).position_ned_m - person) < 0.02
+
+
+def test_ground_term_missing_falls_back_to_height_prior():
+    """Camera below the ground plane (a drone at low altitude over a slope): the feet ray cannot meet the
+    plane ahead; the fused mode gives the height-prior measurement instead of failing."""
+    cam = np.array([0.0, 0.0, -1.0])
+    person = np.array([10.0, 0.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T)
+    m = measurement_from_box(box, CAM, T, POSE_COV, mode="height_and_ground", ground_down_m=-3.0)
+    h = measurement_from_box(box, CAM, T, POSE_COV, mode="height_prior", ground_down_m=-3.0)
+    assert m.mode == "height_prior" and np.allclose(m.position_ned_m, h.position_ned_m)
