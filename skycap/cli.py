@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "groundstation.cli",
     "reconstruction.cli",
     "reconstruction.keypoints.cli",
+    "reconstruction.track.cli",
 )
 
 log = logging.getLogger("skycap")

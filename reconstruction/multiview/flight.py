@@ -42,8 +42,13 @@ def _yaw_only(R: np.ndarray) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def read_drone_log(path: str | Path, gimbal_stabilised: bool = True) -> CameraCapture:
-    """One drone's MCAP -> its :class:`CameraCapture` (see the module docstring)."""
+def read_drone_log(path: str | Path, gimbal_stabilised: bool = True,
+                   position_offset: tuple[np.ndarray, np.ndarray] | None = None) -> CameraCapture:
+    """One drone's MCAP -> its :class:`CameraCapture` (see the module docstring).
+
+    position_offset: optional (t_ns (N,), offset_ned_m (N, 3)) subtracted from the reported positions
+    (interpolated, held at the ends): the offline smoother's estimate of the drone's GPS offset.
+    """
     from onboard.flightlog import FlightLog
     from shared_msgs.messages import CameraInfo, Keypoints2D, VehicleState
 
@@ -74,7 +79,10 @@ def read_drone_log(path: str | Path, gimbal_stabilised: bool = True) -> CameraCa
         w, x, y, z = s.q_world_body
         R = Rotation.from_quat([x, y, z, w]).as_matrix()
         lever = np.asarray(infos[i].T_body_cam, dtype=float).reshape(4, 4)[:3, 3] if len(infos[i].T_body_cam) == 16 else None
-        T_list.append(T_world_cam_from_pose(np.array(s.position_ned_m), _yaw_only(R) if gimbal_stabilised else R,
+        pos = np.array(s.position_ned_m)
+        if position_offset is not None:
+            pos = pos - np.array([np.interp(t, position_offset[0], position_offset[1][:, k]) for k in range(3)])
+        T_list.append(T_world_cam_from_pose(pos, _yaw_only(R) if gimbal_stabilised else R,
                                             infos[i].gimbal_pitch_rad, infos[i].gimbal_yaw_rad, lever))  # fmt: skip
         t_pose.append(t)
         ps.append(float(np.sqrt(np.sum(s.position_cov_m2))))
@@ -100,16 +108,25 @@ def read_drone_log(path: str | Path, gimbal_stabilised: bool = True) -> CameraCa
     )  # fmt: skip
 
 
-def read_flight(flight_dir: str | Path, gimbal_stabilised: bool = True) -> Capture:
-    """All ``drone_*.mcap`` of a flight folder -> a :class:`Capture` (drones without keypoints are skipped with a warning)."""
+def read_flight(flight_dir: str | Path, gimbal_stabilised: bool = True, use_refined_poses: bool = False) -> Capture:
+    """All ``drone_*.mcap`` of a flight folder -> a :class:`Capture` (drones without keypoints are skipped with a warning).
+
+    use_refined_poses: subtract the offline smoother's drone position offsets (``refined_track.npz``, written by
+    ``skycap refine``) from the reported positions.
+    """
     flight_dir = Path(flight_dir)
     files = sorted(flight_dir.glob("drone_*.mcap"))
     if not files:
         raise CaptureError(f"{flight_dir} holds no drone_<i>.mcap files; pass a flight folder written by the onboard recorder")
+    offsets = {}
+    if use_refined_poses:
+        from reconstruction.track.flight import load_refined_offsets
+
+        offsets = load_refined_offsets(flight_dir)
     cams = []
     for f in files:
         try:
-            cams.append(read_drone_log(f, gimbal_stabilised))
+            cams.append(read_drone_log(f, gimbal_stabilised, offsets.get(f.stem)))
         except CaptureError as e:
             log.warning("skipping %s: %s", f.name, e)
     if len(cams) < 2:
@@ -160,7 +177,7 @@ def reconstruct_flight_dir(flight_dir: Path, args: argparse.Namespace) -> int:
     from reconstruction.multiview.fit import FitConfig, fit_capture
     from skycap.config import save_config
 
-    cap = read_flight(flight_dir)
+    cap = read_flight(flight_dir, use_refined_poses=bool(getattr(args, "mv_use_refined_poses", False)))
     grid = output_grid(cap)
     cfg = FitConfig(method=getattr(args, "mv_fit", "product") or "product", device=getattr(args, "mv_device", "cpu") or "cpu")
     out = Path(getattr(args, "mv_out", None) or Path(flight_dir) / "reconstruction")

@@ -1,0 +1,498 @@
+"""Flight folder -> the offline smoother -> ``refined_track.npz`` + ``refined_track.json`` (``skycap refine``).
+
+Reads every ``drone_<i>.mcap`` of a flight folder (:mod:`onboard.flightlog`):
+
+* the drone's own person detections: topic ``detections`` (what the tracking stage shared, with the camera
+  pose covariance filled in) or, on flights without the tracking stage (orbit mode), ``sim/detections``
+  (the simulator's detector; its empty pose covariance is filled from the positioning grade,
+  ``camera_position_sigma_m``);
+* ``camera_info`` (intrinsics), ``state`` (the drone's reported position), ``target`` (the live onboard
+  estimate, for comparison) and ``sim/keypoints2d_gt`` (true person boxes, for evaluation only).
+
+Every box is turned into a 3D measurement with :func:`onboard.tracking.measurement.measurements_from_detections`
+(the onboard geometry, reused), all drones' measurements are smoothed together
+(:func:`reconstruction.track.smoother.smooth_track`), and the results are written beside the recordings:
+
+``refined_track.npz``
+    ``drone_ids`` (D,), ``t_ns`` (N,), ``position_ned_m`` / ``velocity_ned_m_s`` (N, 3), ``covariance``
+    (N, 6, 6) over (p, v), ``offset_ned_m`` (N, D, 3) and ``offset_cov_m2`` (N, D, 3, 3), ``on_grid`` (N,);
+    per drone ``<id>.state_t_ns`` (S,), ``<id>.position_reported_ned_m`` / ``<id>.position_refined_ned_m``
+    (S, 3) (reported minus the smoothed offset), and per detection frame ``<id>.frame_index`` /
+    ``<id>.frame_t_ns`` (F,), ``<id>.box_px`` (F, 4: x_min, y_min, x_max, y_max: the smoothed person,
+    an upright segment of the prior height, projected with the refined camera pose) and ``<id>.roi_px``
+    (F, 4: x, y, w, h, grown by the projected uncertainty as onboard; NaN where the person is out of view).
+``refined_track.json``
+    counts, settings and, when ``truth.mcap`` is present (simulated flights), the evaluation
+    (:func:`evaluate`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from reconstruction.track.smoother import Observation, SmoothedTrack, SmootherConfig, SmootherError, smooth_track
+
+__all__ = ["DroneRecording", "read_recordings", "flight_observations", "refine_flight", "frame_boxes", "evaluate",
+           "load_refined_offsets", "format_evaluation", "REFINED_NPZ", "REFINED_JSON"]
+
+log = logging.getLogger(__name__)
+
+REFINED_NPZ = "refined_track.npz"
+REFINED_JSON = "refined_track.json"
+
+
+@dataclasses.dataclass
+class DroneRecording:
+    """What the smoother and its evaluation need from one drone's recording.
+
+    detections: the drone's own Detections (time-ordered); state_t_ns (S,), state_position_ned_m (S, 3):
+    its reported position; target_t_ns (T,), target_position_ned_m (T, 3): the live onboard estimate
+    (empty without the tracking stage); gt_boxes: frame_index -> (4,) true person box (simulator only).
+    """
+
+    drone_id: str
+    intrinsics: object  # onboard.tracking.measurement.CameraIntrinsics
+    detections: list
+    detections_topic: str
+    state_t_ns: np.ndarray
+    state_position_ned_m: np.ndarray
+    target_t_ns: np.ndarray
+    target_position_ned_m: np.ndarray
+    gt_boxes: dict[int, np.ndarray]
+    land_t_ns: int | None
+
+
+def _drone_files(flight_dir: Path) -> list[Path]:
+    files = sorted(flight_dir.glob("drone_*.mcap"), key=lambda p: (len(p.stem), p.stem))
+    if not files:
+        raise SmootherError(f"{flight_dir} holds no drone_<i>.mcap files; pass a flight folder written by the onboard recorder")
+    return files
+
+
+def read_recordings(flight_dir: str | Path) -> list[DroneRecording]:
+    """Every drone of a flight folder -> :class:`DroneRecording` (drones without detections are left out)."""
+    from onboard.flightlog import FlightLog
+    from onboard.tracking.measurement import CameraIntrinsics
+    from shared_msgs.messages import CameraInfo, Command, Detections, Keypoints2D, TargetEstimate, VehicleState
+
+    out = []
+    for path in _drone_files(Path(flight_dir)):
+        d = path.stem
+        fl = FlightLog(path)
+        dets = {"detections": [], "sim/detections": []}
+        info = None
+        st_t, st_p, tg_t, tg_p, gt = [], [], [], [], {}
+        land = None
+        for m in fl.messages(["detections", "sim/detections", "camera_info", "state", "target", "sim/keypoints2d_gt", "gcs/cmd"]):
+            msg = m.msg
+            if isinstance(msg, Detections):
+                if msg.header.sender_id == d:
+                    dets[m.topic].append(msg)
+            elif isinstance(msg, CameraInfo):
+                info = msg
+            elif isinstance(msg, VehicleState):
+                st_t.append(msg.header.t_measurement_ns)
+                st_p.append(msg.position_ned_m)
+            elif isinstance(msg, TargetEstimate):
+                tg_t.append(msg.header.t_measurement_ns)
+                tg_p.append(msg.position_ned_m)
+            elif isinstance(msg, Keypoints2D):
+                if msg.persons and msg.persons[0].box is not None:
+                    b = msg.persons[0].box
+                    gt[msg.frame_index] = np.array([b.x_min_px, b.y_min_px, b.x_max_px, b.y_max_px])
+            elif isinstance(msg, Command) and msg.action == "land":
+                land = msg.header.t_sent_ns if land is None else min(land, msg.header.t_sent_ns)
+        topic = "detections" if dets["detections"] else "sim/detections"
+        if not dets[topic]:
+            log.warning("%s: no person detections (topics 'detections' / 'sim/detections'): left out", path.name)
+            continue
+        if info is None:
+            raise SmootherError(f"{path}: no 'camera_info' messages; the camera intrinsics are needed")
+        if not st_t:
+            raise SmootherError(f"{path}: no 'state' messages; the drone's reported position is needed")
+        o = np.argsort(st_t, kind="stable")
+        ot = np.argsort(tg_t, kind="stable")
+        out.append(DroneRecording(
+            drone_id=d, intrinsics=CameraIntrinsics.from_camera_info(info),
+            detections=sorted(dets[topic], key=lambda x: x.header.t_measurement_ns), detections_topic=topic,
+            state_t_ns=np.asarray(st_t, dtype=np.int64)[o], state_position_ned_m=np.asarray(st_p, dtype=float).reshape(-1, 3)[o],
+            target_t_ns=np.asarray(tg_t, dtype=np.int64)[ot], target_position_ned_m=np.asarray(tg_p, dtype=float).reshape(-1, 3)[ot],
+            gt_boxes=gt, land_t_ns=land,
+        ))  # fmt: skip
+    if not out:
+        raise SmootherError(f"{flight_dir}: no drone recorded person detections; nothing to smooth")
+    return out
+
+
+def flight_settings(flight_dir: str | Path) -> dict:
+    """Person height prior and positioning grade from the flight's ``config.toml`` (the demo's), else {}."""
+    p = Path(flight_dir) / "config.toml"
+    if not p.is_file():
+        return {}
+    try:
+        cfg = tomllib.loads(p.read_text())
+    except (tomllib.TOMLDecodeError, OSError) as e:
+        log.warning("cannot read %s (%s): using defaults", p, e)
+        return {}
+    out = {}
+    track = cfg.get("track", {})
+    if "person_height_m" in track:
+        out["person_height_m"] = float(track["person_height_m"])
+    rtk = track.get("rtk") if cfg.get("mode") == "track" else cfg.get("rtk")
+    if rtk is not None:
+        out["camera_position_sigma_m"] = 0.05 if rtk else 1.0
+    return out
+
+
+def flight_observations(recordings: list[DroneRecording], person_height_m: float | None = None,
+                        camera_position_sigma_m: float = 1.0, camera_rotation_sigma_rad: float = 0.017,
+                        min_score: float = 0.5, ground_down_m: float = 0.0, measurement_mode: str | None = "height_prior",
+                        offset_step_m: float = 0.1) -> tuple[list[Observation], np.ndarray]:
+    """All drones' detections -> smoother :class:`Observation` s, and the offsets' prior stds (D, 3).
+
+    Each box goes through :func:`onboard.tracking.measurement.measurements_from_detections` (the onboard
+    geometry, with its mode fallbacks) with the reported camera pose. ``measurement_mode`` (None = the
+    onboard default) picks the model: "height_prior" (default here) is exactly invariant to a shift of the
+    camera (``J_offset = I``), so the offsets are cleanly separable from the person; with the other modes
+    ``J_offset`` is computed by running the geometry again with the camera shifted by ``offset_step_m``
+    along each axis (forward differences). Why height-prior by default: the ground-plane point is anchored to
+    the world, so the camera's vertical offset moves it along the line of sight; with the drones at fixed
+    angles around the person (track mode) a common vertical offset plus radial horizontal offsets is then
+    nearly unobservable, and on the 30 s track demo the smoother drifted along that direction (refined
+    drone positions 2-3 m off, against 0.6 m with the height prior). A detection without pose
+    covariance gets ``diag(camera_position_sigma_m^2 (3), camera_rotation_sigma_rad^2 (3))``. The prior std
+    of drone i's offset is the median reported camera position std of its detections.
+    """
+    import msgspec
+
+    from onboard.tracking.measurement import MeasurementConfig, measurements_from_detections
+
+    mcfg = MeasurementConfig() if person_height_m is None else dataclasses.replace(MeasurementConfig(), person_height_m=person_height_m)
+    if measurement_mode is not None:
+        mcfg = dataclasses.replace(mcfg, mode=measurement_mode)
+    cov = tuple(float(v) for v in np.diag([camera_position_sigma_m**2] * 3 + [camera_rotation_sigma_rad**2] * 3).reshape(-1))
+    kw = dict(ground_down_m=ground_down_m, min_score=min_score, config=mcfg)
+    out: list[Observation] = []
+    sig = np.zeros((len(recordings), 3))
+    for di, r in enumerate(recordings):
+        pos_std = []
+        for det in r.detections:
+            if len(det.T_world_cam) != 16 or not det.boxes:
+                continue
+            if len(det.T_world_cam_cov) != 36:
+                det = msgspec.structs.replace(det, T_world_cam_cov=cov)
+            pos_std.append(np.sqrt(np.clip(np.diag(np.asarray(det.T_world_cam_cov, dtype=float).reshape(6, 6))[:3], 0, None)))
+            T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4)
+            for box in det.boxes:
+                one = msgspec.structs.replace(det, boxes=[box])
+                m0 = measurements_from_detections(one, r.intrinsics, **kw)
+                if not m0:
+                    continue
+                J = np.eye(3)
+                for i in range(3 if m0[0].mode not in ("height_prior",) else 0):
+                    Ti = T.copy()
+                    Ti[i, 3] += offset_step_m
+                    mi = measurements_from_detections(msgspec.structs.replace(one, T_world_cam=tuple(Ti.reshape(-1))), r.intrinsics, **kw)
+                    if len(mi) != 1 or mi[0].mode != m0[0].mode:
+                        J = np.eye(3)  # the model switched at the shifted pose: the shift-invariant default
+                        break
+                    J[:, i] = (mi[0].position_ned_m - m0[0].position_ned_m) / offset_step_m
+                out.append(Observation.from_measurement(m0[0], di, J))
+        sig[di] = np.median(pos_std, axis=0) if pos_std else camera_position_sigma_m
+    return out, sig
+
+
+def frame_boxes(track: SmoothedTrack, rec: DroneRecording, person_height_m: float) -> dict[str, np.ndarray]:
+    """Per detection frame of one drone: the smoothed person projected with the refined camera pose.
+
+    Returns frame_index (F,), frame_t_ns (F,), box_px (F, 4) x_min, y_min, x_max, y_max and roi_px (F, 4)
+    x, y, w, h (NaN rows where the person is behind the camera or outside the image, or outside the span).
+    """
+    from onboard.tracking.measurement import box_from_person
+    from onboard.tracking.roi import RoiConfig, roi_from_estimate
+
+    d = track.drone_ids.index(rec.drone_id)
+    rcfg = RoiConfig(person_height_m=person_height_m)
+    fi = np.array([m.frame_index for m in rec.detections], dtype=np.int64)
+    ft = np.array([m.header.t_measurement_ns for m in rec.detections], dtype=np.int64)
+    box = np.full((len(fi), 4), np.nan)
+    roi = np.full((len(fi), 4), np.nan)
+    inside = (ft >= track.t_ns[0]) & (ft <= track.t_ns[-1])
+    if inside.any():
+        p = track.position_at(ft)
+        off = track.offset_at(d, ft)
+        k = np.clip(np.searchsorted(track.t_ns, ft), 0, len(track.t_ns) - 1)
+        for j, m in enumerate(rec.detections):
+            if not inside[j] or len(m.T_world_cam) != 16:
+                continue
+            T = np.asarray(m.T_world_cam, dtype=float).reshape(4, 4).copy()
+            T[:3, 3] -= off[j]
+            r = roi_from_estimate(p[j], track.covariance[k[j], :3, :3], rec.intrinsics, T, rcfg)
+            if r is None:
+                continue
+            roi[j] = r
+            box[j] = box_from_person(p[j], rec.intrinsics, T, person_height_m, rcfg.aspect_w_over_h)[0]
+    return {"frame_index": fi, "frame_t_ns": ft, "box_px": box, "roi_px": roi}
+
+
+def refine_flight(flight_dir: str | Path, config: SmootherConfig = SmootherConfig(), person_height_m: float | None = None,
+                  camera_position_sigma_m: float | None = None, min_score: float = 0.5, measurement_mode: str | None = "height_prior",
+                  write: bool = True) -> dict:
+    """Smooth a recorded flight; writes ``refined_track.npz`` / ``.json`` (see the module doc) and returns the
+    JSON dict (with ``evaluation`` when the flight has ``truth.mcap``)."""
+    flight_dir = Path(flight_dir)
+    settings = flight_settings(flight_dir)
+    H = person_height_m if person_height_m is not None else settings.get("person_height_m")
+    from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M
+
+    H = float(H) if H is not None else PERSON_HEIGHT_PRIOR_M
+    sig = camera_position_sigma_m if camera_position_sigma_m is not None else settings.get("camera_position_sigma_m", 1.0)
+    recs = read_recordings(flight_dir)
+    obs, offset_sigma = flight_observations(recs, H, sig, min_score=min_score, measurement_mode=measurement_mode)
+    ids = [r.drone_id for r in recs]
+    track = smooth_track(obs, ids, config, offset_sigma_m=offset_sigma)
+    arrays: dict[str, np.ndarray] = {
+        "drone_ids": np.array(ids), "t_ns": track.t_ns, "position_ned_m": track.position_ned_m,
+        "velocity_ned_m_s": track.velocity_ned_m_s, "covariance": track.covariance, "offset_ned_m": track.offset_ned_m,
+        "offset_cov_m2": track.offset_cov_m2, "on_grid": track.on_grid,
+    }  # fmt: skip
+    boxes = {}
+    for di, r in enumerate(recs):
+        arrays[f"{r.drone_id}.state_t_ns"] = r.state_t_ns
+        arrays[f"{r.drone_id}.position_reported_ned_m"] = r.state_position_ned_m
+        arrays[f"{r.drone_id}.position_refined_ned_m"] = r.state_position_ned_m - track.offset_at(di, r.state_t_ns)
+        boxes[r.drone_id] = frame_boxes(track, r, H)
+        for k, v in boxes[r.drone_id].items():
+            arrays[f"{r.drone_id}.{k}"] = v
+    acc = track.accepted
+    summary = {
+        "flight_dir": str(flight_dir),
+        "drones": ids,
+        "detections_topic": {r.drone_id: r.detections_topic for r in recs},
+        "person_height_m": H,
+        "measurement_mode": measurement_mode or "onboard default",
+        "camera_position_sigma_m": sig,
+        "offset_prior_sigma_m": {d: [round(float(v), 4) for v in track.offset_sigma_m[i]] for i, d in enumerate(ids)},
+        "measurements": len(obs),
+        "frames": int(len(acc)),
+        "frames_used": int(acc.sum()),
+        "frames_rejected": int((~acc).sum()),
+        "frames_downweighted": int(np.sum(acc & (track.frame_weight < 1.0))),
+        "reweighting_passes": track.iterations,
+        "span_s": round(float((track.t_ns[-1] - track.t_ns[0]) * 1e-9), 3),
+        "offset_mean_ned_m": {d: [round(float(v), 3) for v in track.offset_ned_m[:, i].mean(axis=0)] for i, d in enumerate(ids)},
+        "config": dataclasses.asdict(config),
+    }
+    truth = flight_dir / "truth.mcap"
+    if truth.is_file():
+        summary["evaluation"] = evaluate(flight_dir, track, recs, boxes)
+    if write:
+        np.savez_compressed(flight_dir / REFINED_NPZ, **arrays)
+        (flight_dir / REFINED_JSON).write_text(json.dumps(summary, indent=2, default=_json_default))
+        log.info("wrote %s and %s", flight_dir / REFINED_NPZ, flight_dir / REFINED_JSON)
+    return summary
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(type(o).__name__)
+
+
+def load_refined_offsets(flight_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``refined_track.npz`` -> {drone id: (t_ns (N,), offset_ned_m (N, 3))}: what to subtract from the drone's
+    reported positions (see :func:`reconstruction.multiview.flight.read_flight`, ``use_refined_poses``)."""
+    p = Path(flight_dir) / REFINED_NPZ
+    if not p.is_file():
+        raise SmootherError(f"{p} does not exist: run `skycap refine {flight_dir}` first")
+    z = np.load(p)
+    ids = [str(s) for s in z["drone_ids"]]
+    return {d: (z["t_ns"], z["offset_ned_m"][:, i]) for i, d in enumerate(ids)}
+
+
+# ------------------------------------------------------------------------------------------------ evaluation
+def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_ns (T,), person root (T, 3), drone positions (T, D, 3)) from the simulator truth."""
+    from onboard.flightlog import FlightLog
+    from shared_msgs.messages import SimTruth
+
+    ts, person, veh = [], [], []
+    for m in FlightLog(path).messages():
+        msg = m.msg
+        if not isinstance(msg, SimTruth):
+            continue
+        by_id = {v.drone_id: v for v in msg.vehicles}
+        if not all(d in by_id for d in drone_ids):
+            continue
+        ts.append(msg.header.t_measurement_ns)
+        person.append(msg.person_root_ned_m)
+        veh.append([by_id[d].position_ned_m for d in drone_ids])
+    if len(ts) < 2:
+        raise SmootherError(f"{path} holds no simulator truth for {drone_ids}")
+    o = np.argsort(ts)
+    return np.asarray(ts, dtype=np.int64)[o], np.asarray(person, dtype=float)[o], np.asarray(veh, dtype=float)[o]
+
+
+def _interp(tq: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    tq = (np.asarray(tq, dtype=np.int64) - t[0]).astype(float)
+    tt = (t - t[0]).astype(float)
+    return np.stack([np.interp(tq, tt, rows[:, i]) for i in range(rows.shape[1])], axis=-1)
+
+
+def _rms3(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=-1)))) if len(e) else math.nan
+
+
+def _window_ns(flight_dir: Path, recs: list[DroneRecording], t_truth_end: int, settle_s: float) -> tuple[int, int]:
+    """Steady window as the flight summary uses it: plan start + settle_s to the first land command."""
+    from groundstation.summary import load_plan
+
+    plan_p = flight_dir / "plan.json"
+    t0 = None
+    if plan_p.is_file():
+        t0 = load_plan(plan_p).start_time_ns + int(settle_s * 1e9)
+    lands = [r.land_t_ns for r in recs if r.land_t_ns is not None]
+    t1 = min(min(lands) if lands else t_truth_end, t_truth_end)
+    if t0 is None:
+        t0 = int(min(r.detections[0].header.t_measurement_ns for r in recs))
+    return int(t0), int(t1)
+
+
+def evaluate(flight_dir: str | Path, track: SmoothedTrack, recs: list[DroneRecording], boxes: dict[str, dict],
+             settle_s: float = 8.0) -> dict:
+    """The smoother against the simulator truth, beside the live onboard figures, over the steady window.
+
+    * person track: RMS 3D error of the smoothed track (output grid), of its forward (causal, centralised)
+      pass and of each drone's live ``target`` estimates, against the true person root at their own times;
+      ``*_fleet_frame_m``: the same with the fleet's common position bias removed -- the window mean over the
+      drones of (reported position - true position), the definition of the flight summary's
+      ``target_rmse_fleet_frame_m``: no estimator can observe it without an absolute reference;
+    * drone positions: RMS error of the reported and of the refined (reported - smoothed offset) positions, and
+      the same in the fleet frame (each set's own common component -- window mean over drones -- removed);
+    * regions of interest: the share of frames whose true person box lies inside the smoothed ROI and inside
+      the live one (``roi_px`` of the shared detections, track mode), and the IoU of the smoothed person box
+      with the true box.
+    """
+    from groundstation.summary import box_in_roi
+
+    flight_dir = Path(flight_dir)
+    ids = track.drone_ids
+    rec_by = {r.drone_id: r for r in recs}
+    tt, person, veh = _read_truth(flight_dir / "truth.mcap", ids)
+    t0, t1 = _window_ns(flight_dir, recs, int(tt[-1]), settle_s)
+    if t1 <= t0:
+        raise SmootherError(f"{flight_dir}: no steady window (plan start + {settle_s} s to the land command)")
+
+    # common bias (reported positions), as groundstation.summary defines it
+    rep_err, ref_err = [], []
+    drones = {}
+    for di, d in enumerate(ids):
+        r = rec_by[d]
+        sel = (r.state_t_ns >= t0) & (r.state_t_ns <= t1)
+        ts = r.state_t_ns[sel]
+        true_p = _interp(ts, tt, veh[:, di])
+        rep = r.state_position_ned_m[sel]
+        ref = rep - track.offset_at(di, ts)
+        rep_err.append(rep - true_p)
+        ref_err.append(ref - true_p)
+    common_rep = np.mean([e.mean(axis=0) for e in rep_err if len(e)], axis=0)
+    common_ref = np.mean([e.mean(axis=0) for e in ref_err if len(e)], axis=0)
+    for di, d in enumerate(ids):
+        drones[d] = {
+            "position_err_m_reported": round(_rms3(rep_err[di]), 3),
+            "position_err_m_refined": round(_rms3(ref_err[di]), 3),
+            "position_err_fleet_frame_m_reported": round(_rms3(rep_err[di] - common_rep), 3),
+            "position_err_fleet_frame_m_refined": round(_rms3(ref_err[di] - common_ref), 3),
+        }
+    # person track
+    g = track.on_grid & (track.t_ns >= t0) & (track.t_ns <= t1)
+    truth_g = _interp(track.t_ns[g], tt, person)
+    e_s = track.position_ned_m[g] - truth_g
+    e_f = track.filtered_position_ned_m[g] - truth_g
+    live = []
+    for di, d in enumerate(ids):
+        r = rec_by[d]
+        sel = (r.target_t_ns >= t0) & (r.target_t_ns <= t1)
+        row = drones[d]
+        if sel.sum():
+            e = r.target_position_ned_m[sel] - _interp(r.target_t_ns[sel], tt, person)
+            live.append(e)
+            row["live_target_rmse_m"] = round(_rms3(e), 3)
+            row["live_target_rmse_fleet_frame_m"] = round(_rms3(e - common_rep), 3)
+        # ROIs
+        b = boxes[d]
+        fsel = (b["frame_t_ns"] >= t0) & (b["frame_t_ns"] <= t1)
+        hit_s, hit_l, ious = [], [], []
+        live_roi = {m.frame_index: m.roi_px for m in r.detections}
+        for j in np.flatnonzero(fsel):
+            f = int(b["frame_index"][j])
+            gt = r.gt_boxes.get(f)
+            if gt is None:
+                continue
+            roi = b["roi_px"][j]
+            hit_s.append(bool(np.all(np.isfinite(roi))) and box_in_roi(gt, roi))
+            if r.detections_topic == "detections":
+                hit_l.append(box_in_roi(gt, live_roi.get(f, (0.0, 0.0, 0.0, 0.0))))
+            bx = b["box_px"][j]
+            ious.append(_iou(bx, gt) if np.all(np.isfinite(bx)) else 0.0)
+        row["roi_frames"] = len(hit_s)
+        row["person_in_roi_rate_smoothed"] = round(float(np.mean(hit_s)), 4) if hit_s else math.nan
+        row["person_in_roi_rate_live"] = round(float(np.mean(hit_l)), 4) if hit_l else math.nan
+        row["box_iou_smoothed_median"] = round(float(np.median(ious)), 3) if ious else math.nan
+    live_all = np.concatenate(live) if live else np.zeros((0, 3))
+    fleet = {
+        "window_s": [round(t0 * 1e-9, 3), round(t1 * 1e-9, 3)],
+        "person_rmse_m_smoothed": round(_rms3(e_s), 3),
+        "person_rmse_m_forward": round(_rms3(e_f), 3),
+        "person_rmse_m_live": round(_rms3(live_all), 3),
+        "person_rmse_fleet_frame_m_smoothed": round(_rms3(e_s - common_rep), 3),
+        "person_rmse_fleet_frame_m_forward": round(_rms3(e_f - common_rep), 3),
+        "person_rmse_fleet_frame_m_live": round(_rms3(live_all - common_rep), 3),
+        "person_rmse_h_m_smoothed": round(_rms3(e_s[:, :2]), 3),
+        "fleet_common_bias_ned_m_reported": [round(float(v), 3) for v in common_rep],
+        "fleet_common_bias_ned_m_refined": [round(float(v), 3) for v in common_ref],
+        "grid_points": int(g.sum()),
+        "truth_person_reference": "person_root_ned_m",
+    }
+    return {"drones": drones, "fleet": fleet}
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    x0, y0 = max(a[0], b[0]), max(a[1], b[1])
+    x1, y1 = min(a[2], b[2]), min(a[3], b[3])
+    inter = max(0.0, x1 - x0) * max(0.0, y1 - y0)
+    ua = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / ua) if ua > 0 else 0.0
+
+
+def format_evaluation(ev: dict) -> str:
+    """The evaluation as a table: person track (fleet) and, per drone, positions and ROIs."""
+    f = ev["fleet"]
+    lines = [
+        "person track RMSE (m) vs truth, steady window        3D      3D fleet-frame",
+        f"  live onboard filters (target, all drones)       {f['person_rmse_m_live']:6.3f}    {f['person_rmse_fleet_frame_m_live']:6.3f}",
+        f"  offline forward pass (causal, all drones)       {f['person_rmse_m_forward']:6.3f}    {f['person_rmse_fleet_frame_m_forward']:6.3f}",
+        f"  offline smoother (RTS, robust)                  {f['person_rmse_m_smoothed']:6.3f}    {f['person_rmse_fleet_frame_m_smoothed']:6.3f}",
+        f"  fleet common bias (reported, NED m): {f['fleet_common_bias_ned_m_reported']}",
+        "",
+        f"{'drone':10s}{'pos_err_rep':>12s}{'pos_err_ref':>12s}{'ff_rep':>9s}{'ff_ref':>9s}{'live_tgt':>10s}"
+        f"{'roi_live':>10s}{'roi_smth':>10s}{'box_iou':>9s}",
+    ]
+    for d, r in ev["drones"].items():
+        lines.append(f"{d:10s}{r['position_err_m_reported']:12.3f}{r['position_err_m_refined']:12.3f}"
+                     f"{r['position_err_fleet_frame_m_reported']:9.3f}{r['position_err_fleet_frame_m_refined']:9.3f}"
+                     f"{r.get('live_target_rmse_m', math.nan):10.3f}{r['person_in_roi_rate_live']:10.3f}"
+                     f"{r['person_in_roi_rate_smoothed']:10.3f}{r['box_iou_smoothed_median']:9.3f}")  # fmt: skip
+    lines.append("pos_err: drone position RMSE (m), reported / refined; ff_*: with each set's fleet-common component removed")
+    return "\n".join(lines)

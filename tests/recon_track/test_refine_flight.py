@@ -1,0 +1,151 @@
+"""``skycap refine`` on a flight folder recorded with the real flight recorder (MCAP): the reader, the
+outputs, the evaluation against truth.mcap and the multiview reader's ``use_refined_poses`` hook."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from recon_track_scene import CAM, make_scene
+from skycap.frames import project_points
+
+
+def _q_yaw(T):
+    R = T[:3, :3] @ np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # optical -> FRD forward axis
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    return (float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2)))
+
+
+def _write_flight(folder, scene):
+    from onboard.recorder import Recorder, drone_log_path, truth_log_path
+    from shared_msgs.messages import (BoundingBox, CameraInfo, Detections, Header, Keypoints2D, PersonKeypoints,
+                                      SimTruth, VehicleState, VehicleTruth)
+
+    D = scene.drones.shape[1]
+    ids = [f"drone_{d + 1}" for d in range(D)]
+    t_ns = (scene.t_s * 1e9).round().astype(np.int64)
+
+    def hdr(t, s):
+        return Header(schema_version=1, sender_id=s, t_measurement_ns=int(t), t_sent_ns=int(t))
+
+    for d, name in enumerate(ids):
+        with Recorder(drone_log_path(folder, name), node_id=name) as rec:
+            rec.record_message("camera_info", CameraInfo(header=hdr(t_ns[0], name), camera_id="cam0", width_px=CAM.width_px,
+                               height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px), int(t_ns[0]))  # fmt: skip
+            for k in range(0, len(t_ns), 2):  # state at 50 Hz: reported = true + offset
+                p = scene.drones[k, d] + scene.bias[k, d]
+                rec.record_message("state", VehicleState(header=hdr(t_ns[k], name), position_ned_m=tuple(map(float, p)),
+                                   velocity_ned_m_s=(0.0, 0.0, 0.0), q_world_body=(1.0, 0.0, 0.0, 0.0)), int(t_ns[k]))  # fmt: skip
+            frames = [f for f in scene.frames if f["drone"] == d]
+            for i, f in enumerate(frames):
+                b = f["box"]
+                box = BoundingBox(x_min_px=float(b[0]), y_min_px=float(b[1]), x_max_px=float(b[2]), y_max_px=float(b[3]),
+                                  score=0.9, var_x_min_px2=4.0, var_y_min_px2=4.0, var_x_max_px2=4.0, var_y_max_px2=4.0)
+                rec.record_message("detections", Detections(
+                    header=hdr(f["t_ns"], name), camera_id="cam0", frame_index=i, detector="simulated", mode="simulated",
+                    boxes=[box], width_px=CAM.width_px, height_px=CAM.height_px,
+                    T_world_cam=tuple(map(float, f["T_reported"].reshape(-1))), T_world_cam_cov=tuple(map(float, f["cov"].reshape(-1)))),
+                    f["t_ns"])  # fmt: skip
+                bt = f["box_true"]
+                gt = PersonKeypoints(keypoints_px=(0.0,) * 34, confidence=(1.0,) * 17,
+                                     box=BoundingBox(x_min_px=float(bt[0]), y_min_px=float(bt[1]), x_max_px=float(bt[2]), y_max_px=float(bt[3]), score=1.0))  # fmt: skip
+                rec.record_message("sim/keypoints2d_gt", Keypoints2D(header=hdr(f["t_ns"], name), camera_id="cam0", frame_index=i,
+                                   detector="truth", simulated=True, persons=[gt]), f["t_ns"])  # fmt: skip
+                # keypoints for the multiview reader: a vertical line of 17 points through the person
+                k = int(round(f["t_ns"] * 1e-7))
+                pts = scene.person[k] + np.c_[np.zeros((17, 2)), np.linspace(-0.8, 0.8, 17)]
+                uv, _ = project_points(CAM.K, f["T_reported"], pts)
+                rec.record_message("sim/keypoints2d", Keypoints2D(header=hdr(f["t_ns"], name), camera_id="cam0", frame_index=i,
+                                   detector="sim", simulated=True, persons=[PersonKeypoints(keypoints_px=tuple(map(float, uv.reshape(-1))),
+                                   confidence=(0.9,) * 17)]), f["t_ns"])  # fmt: skip
+    with Recorder(truth_log_path(folder), node_id="sim") as rec:
+        for k in range(0, len(t_ns), 2):
+            veh = [VehicleTruth(drone_id=n, position_ned_m=tuple(map(float, scene.drones[k, d])), velocity_ned_m_s=(0.0, 0.0, 0.0),
+                                q_world_body=(1.0, 0.0, 0.0, 0.0)) for d, n in enumerate(ids)]  # fmt: skip
+            rec.record_message("truth", SimTruth(header=hdr(t_ns[k], "sim"), vehicles=veh,
+                               person_joints_ned_m=tuple(map(float, np.tile(scene.person[k], 17))),
+                               person_root_ned_m=tuple(map(float, scene.person[k]))), int(t_ns[k]))  # fmt: skip
+    return ids
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    pytest.importorskip("mcap")
+    folder = tmp_path_factory.mktemp("flight")
+    scene = make_scene(seed=11, duration_s=25.0)
+    ids = _write_flight(folder, scene)
+    return folder, scene, ids
+
+
+def test_refine_cli_writes_refined_track_and_evaluates(flight, capsys):
+    from skycap.cli import main
+
+    folder, scene, ids = flight
+    assert main(["refine", str(folder), "--person-height-m", "1.69"]) == 0
+    out = capsys.readouterr().out
+    assert "offline smoother" in out and "pos_err_rep" in out
+    z = np.load(folder / "refined_track.npz")
+    assert [str(s) for s in z["drone_ids"]] == ids
+    N = len(z["t_ns"])
+    assert z["position_ned_m"].shape == (N, 3) and z["covariance"].shape == (N, 6, 6)
+    assert z["offset_ned_m"].shape == (N, 3, 3)
+    for d in ids:
+        S = len(z[f"{d}.state_t_ns"])
+        assert z[f"{d}.position_refined_ned_m"].shape == (S, 3)
+        assert z[f"{d}.roi_px"].shape == (len(z[f"{d}.frame_index"]), 4)
+    s = json.loads((folder / "refined_track.json").read_text())
+    ev = s["evaluation"]
+    f = ev["fleet"]
+    # the evaluation removes the fleet-common offset's window mean (the flight summary's definition); it drifts
+    # (60 s Gauss-Markov) by ~0.3 m over this flight, hence the loose bound (test_smoother checks 0.15 m with
+    # the drifting common offset removed)
+    assert f["person_rmse_fleet_frame_m_smoothed"] < 0.4, f
+    assert f["person_rmse_fleet_frame_m_smoothed"] <= f["person_rmse_fleet_frame_m_forward"] + 1e-6, f
+    for d, row in ev["drones"].items():
+        assert row["position_err_fleet_frame_m_refined"] < row["position_err_fleet_frame_m_reported"], (d, row)
+        assert row["roi_frames"] > 150 and row["person_in_roi_rate_smoothed"] > 0.97, (d, row)
+        assert row["box_iou_smoothed_median"] > 0.6, (d, row)
+
+
+def test_multiview_reader_uses_the_refined_positions(flight):
+    from reconstruction.multiview.flight import read_flight
+    from reconstruction.track.flight import load_refined_offsets
+
+    folder, scene, ids = flight
+    if not (folder / "refined_track.npz").is_file():
+        from reconstruction.track.flight import refine_flight
+
+        refine_flight(folder, person_height_m=1.69)
+    plain = read_flight(folder)
+    refined = read_flight(folder, use_refined_poses=True)
+    offsets = load_refined_offsets(folder)
+    for cp, cr in zip(plain.cameras, refined.cameras):
+        t, off = offsets[cp.name]
+        expect = np.stack([np.interp(cp.t_pose_ns, t, off[:, k]) for k in range(3)], -1)
+        np.testing.assert_allclose(cp.T_world_cam[:, :3, 3] - cr.T_world_cam[:, :3, 3], expect, atol=1e-9)
+        np.testing.assert_allclose(cp.T_world_cam[:, :3, :3], cr.T_world_cam[:, :3, :3])
+        # and they are nearer the truth (relative to the fleet's common offset)
+        d = int(cp.name.split("_")[1]) - 1
+        tt = cp.t_pose_ns * 1e-9
+        true = np.stack([np.interp(tt, scene.t_s, scene.drones[:, d, k]) for k in range(3)], -1)
+        common = np.mean([np.stack([np.interp(tt, scene.t_s, scene.bias[:, j, k]) for k in range(3)], -1) for j in range(3)], axis=0)
+        e_plain = np.sqrt(np.mean(np.sum((cp.T_world_cam[:, :3, 3] - true - common) ** 2, -1)))
+        e_ref = np.sqrt(np.mean(np.sum((cr.T_world_cam[:, :3, 3] - true - common) ** 2, -1)))
+        assert e_ref < 0.5 * e_plain, (cp.name, e_plain, e_ref)
+
+
+def test_refine_errors_are_clear(tmp_path, flight):
+    import shutil
+
+    from reconstruction.multiview.flight import read_flight
+    from reconstruction.track.flight import refine_flight
+    from reconstruction.track.smoother import SmootherError
+
+    with pytest.raises(SmootherError, match="no drone_"):
+        refine_flight(tmp_path)
+    for f in flight[0].glob("drone_*.mcap"):
+        shutil.copy(f, tmp_path / f.name)
+    with pytest.raises(SmootherError, match="run `skycap refine"):
+        read_flight(tmp_path, use_refined_poses=True)
