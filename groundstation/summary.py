@@ -29,6 +29,8 @@ written by the agent), ``detector_hz`` (own detection messages per second), ``se
 ``self_pos_err_m_after`` (RMS 3D error of the drone's reported position against the truth, without / with the
 filter's estimated offset subtracted); fleet: ``min_separation_m`` (truth, steady window) and
 ``tracking_lost_s`` (time in the window during which no drone published a ``tracking`` estimate within 1 s).
+Fault and failsafe counters per drone (failsafe decision changes, malformed detections ignored, simulated
+network drops/delays, the filter's re-filtering and gating): see :func:`_fault_figures`.
 """
 
 from __future__ import annotations
@@ -464,6 +466,7 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
             "detections_source": P["stats"].get("detections_source", "unknown"),
             "self_pos_err_m_before": round(before, 3),
             "self_pos_err_m_after": round(after, 3),
+            **_fault_figures(P["stats"]),
         }
     w = (tt >= t0) & (tt <= t1)
     return {
@@ -475,6 +478,29 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
             "window_s": [round(float(t0), 3), round(float(t1), 3)],
             "truth_person_reference": "person_root_ned_m",
         },
+    }
+
+
+def _fault_figures(stats: dict) -> dict:
+    """Failsafe and fault counters from an agent's ``<drone>.track.json`` (absent when the agent did not write
+    it, e.g. killed): ``failsafe_events`` (decision changes), ``failsafe_counts`` (per action),
+    ``malformed_detections`` (ignored: refused by the codec, by the tracking stage, non-finite),
+    ``fault_dropped`` / ``fault_delayed`` (simulated network faults on receipt), the filter's
+    ``filter_refiltered`` (late measurements re-filtered), ``filter_rejected_gate``, ``filter_reinitialisations``."""
+    if not stats:
+        return {"agent_stats": False}
+    fs = stats.get("filter_stats", {})
+    tp = stats.get("transport", {})
+    return {
+        "agent_stats": True,
+        "failsafe_events": len(stats.get("failsafe_events", [])),
+        "failsafe_counts": dict(stats.get("failsafe_counts", {})),
+        "malformed_detections": int(stats.get("malformed_detections", {}).get("total", 0)),
+        "fault_dropped": int(tp.get("fault_dropped", 0)),
+        "fault_delayed": int(tp.get("fault_delayed", 0)),
+        "filter_refiltered": int(fs.get("refiltered", 0)),
+        "filter_rejected_gate": int(fs.get("rejected_gate", 0)),
+        "filter_reinitialisations": int(fs.get("reinitialisations", 0)),
     }
 
 

@@ -135,6 +135,14 @@ class Agent:
         self.mpc_fallbacks = 0
         self.teammate_plans_received = 0
         self._last_target_pub_s = 0.0
+        #: track mode: the formation failsafes (onboard.formation.failsafe) and what they decided
+        self.teammate_seen_s: dict[str, float] = {}  #: newest state/plan per teammate (UNIX s of receipt)
+        self.supervisor = None
+        self.failsafe_log = None
+        self._t_person_seen_s: float | None = None
+        self._t_formation_start_s: float | None = None
+        self._consecutive_fallbacks = 0
+        self._fs_response = None
         if cfg.mode == "track":
             from onboard.tracking.stage import TrackingStage, TrackingStageConfig
 
@@ -151,6 +159,9 @@ class Agent:
                 camera_position_sigma_m=cfg.track.camera_position_sigma_m,
                 camera_rotation_sigma_rad=cfg.track.camera_rotation_sigma_rad))
             self.rates["detections"] = RateMeter()
+            from onboard.formation.failsafe import FailsafeLog
+
+            self.failsafe_log = FailsafeLog(self.id)
         autopilot.on_state = self._on_state
 
     # --- keys ----------------------------------------------------------------------------------------
@@ -210,6 +221,7 @@ class Agent:
         if node != self.id:
             self.neighbours[node] = (rx.msg.position_ned_m, time.monotonic())
             self.neighbour_states[node] = rx.msg
+            self.teammate_seen_s[node] = time.time()
 
     def on_detections(self, rx) -> None:
         """A teammate's shared detections (track mode): fused into this drone's filter."""
@@ -267,7 +279,9 @@ class Agent:
             if self.tracking is not None and rx.key == self.key(keys.SIM_DETECTIONS):
                 self.rates["detections"].tick()
                 try:
-                    self.publish(keys.DETECTIONS, self.tracking.on_own_detections(msg))
+                    out = self.tracking.on_own_detections(msg)
+                    if out is not None:  # None: malformed, ignored and counted by the stage
+                        self.publish(keys.DETECTIONS, out)
                 except Exception:
                     log.exception("%s: tracking stage failed", self.id)
         elif isinstance(msg, CameraFrame):
@@ -353,6 +367,16 @@ class Agent:
         src = FormationSource(FormationMPC(self.id, mc), plan.phase_offset_rad[self.id],
                               ground_down_m=float(plan.center_ned_m[2]), plan_timeout_s=t.plan_timeout_s)
         log.info("%s: formation MPC built in %.1f s", self.id, time.monotonic() - t0)
+        if t.failsafe.enabled:
+            from onboard.formation.failsafe import FailsafeConfig, FormationSupervisor
+
+            f = t.failsafe
+            self.supervisor = FormationSupervisor(self.id, FailsafeConfig(
+                person_lost_after_s=f.person_lost_after_s, teammate_lost_after_s=f.teammate_lost_after_s,
+                min_separation_margin_m=f.separation_margin_m, min_separation_m=plan.min_separation_m,
+                min_geofence_margin_m=f.geofence_margin_m, max_consecutive_fallbacks=f.max_consecutive_fallbacks,
+                battery_return_frac=f.battery_return_frac, battery_land_frac=f.battery_land_frac))
+            self._t_formation_start_s = time.time()
         guess = np.asarray(plan.center_ned_m, dtype=float) - [0.0, 0.0, 0.5 * PERSON_HEIGHT_PRIOR_M]
         src.set_target(guess, np.zeros(3))
         self._target_guess = guess
@@ -371,6 +395,60 @@ class Agent:
             src.set_teammate_state(d, st.header.t_measurement_ns, st.position_ned_m, st.velocity_ned_m_s)
         return offset
 
+    def _supervise_formation(self, src, t_s: float, own_ned_m: np.ndarray) -> None:
+        """One failsafe decision (track mode) before the MPC step, and act on it: slot angle, hold / search,
+        or return / land through the mission. Changes are logged, counted and kept in ``failsafe_log``.
+        own_ned_m: this drone's position in the filter's frame."""
+        from onboard.formation.failsafe import FailsafeAction, FailsafeInputs, person_seen_s, respond
+
+        sup, f = self.supervisor, self.cfg.track.failsafe
+        est = self.tracking.estimate(int(t_s * 1e9)) if self.tracking is not None else None
+        if est is not None:
+            t_seen = est.t_last_measurement_ns * 1e-9
+            self._t_person_seen_s = t_seen if self._t_person_seen_s is None else max(self._t_person_seen_s, t_seen)
+        person = est.position_ned_m if est is not None else getattr(self, "_target_guess", np.zeros(3))
+        r = src.last_result
+        fresh = r is not None and (t_s - r.plan.t0_ns * 1e-9) < 1.0
+        positions = {d: tuple(st.position_ned_m) for d, st in self.neighbour_states.items()}
+        positions[self.id] = tuple(float(v) for v in own_ned_m)
+        plan = self.mission.plan
+        inp = FailsafeInputs(
+            t_s=t_s, self_id=self.id,
+            t_person_seen_s=person_seen_s(self._t_person_seen_s, self._t_formation_start_s or t_s, f.acquire_grace_s,
+                                          f.person_lost_after_s),
+            teammates_last_seen_s=dict(self.teammate_seen_s),
+            battery_frac=float(self.autopilot.telemetry.get("battery_frac", 1.0)),
+            predicted_min_separation_m=float(r.min_teammate_distance_m) if fresh else float("inf"),
+            predicted_geofence_margin_m=float(r.min_geofence_margin_m) if fresh else float("inf"),
+            consecutive_fallbacks=self._consecutive_fallbacks,
+            person_ned_m=tuple(float(v) for v in person),
+            positions_ned_m=positions,
+            operator_angles_rad=dict(plan.phase_offset_rad) if plan is not None else None,
+        )
+        d = sup.update(inp)
+        resp = respond(d, self.id)
+        ev = self.failsafe_log.note(t_s, d)
+        if ev is not None:
+            (log.info if d.action is FailsafeAction.CONTINUE else log.warning)(
+                "%s: formation failsafe -> %s (%s); present %s; slot %.1f deg", self.id, d.action.value,
+                "; ".join(d.reasons) or "all well", list(d.present_ids),
+                math.degrees(resp.slot_angle_rad) if resp.slot_angle_rad is not None else float("nan"))
+            if d.action is not FailsafeAction.CONTINUE:
+                self.warnings.append(f"formation failsafe: {d.action.value}: {'; '.join(d.reasons)}")
+        if resp.slot_angle_rad is not None:
+            src.slot_angle_rad = resp.slot_angle_rad
+        if resp.mission_action is not None:
+            self._failsafe("; ".join(d.reasons), resp.mission_action)
+            return
+        search = math.radians(f.search_yaw_rate_deg_s) if resp.search else 0.0
+        if resp.hold and not src.holding:
+            src.hold(own_ned_m, search)  # brake and hold where it is now
+        elif resp.hold:
+            src.search_yaw_rate_rad_s = search
+        elif src.holding:
+            src.hold(None)
+        self._fs_response = resp
+
     def _note_formation(self, src) -> None:
         """After an MPC step: its statistics, and its plan shared with the teammates (``formation/plan``)."""
         r = src.last_result
@@ -378,7 +456,8 @@ class Agent:
             self._last_mpc_result = r
             self.mpc_solve_ms.append(1e3 * r.solve_time_s)
             self.mpc_fallbacks = src.mpc.fallback_count
-            pl = r.plan
+            self._consecutive_fallbacks = self._consecutive_fallbacks + 1 if r.fallback else 0
+            pl = getattr(src, "shared_plan", None) or r.plan
             msg = FormationPlan(header=FormationPlan.make_header(self.id, int(pl.t0_ns)), t0_ns=int(pl.t0_ns),
                                 dt_s=float(pl.dt_s), fallback=bool(r.fallback),
                                 positions_ned_m=tuple(float(v) for v in np.asarray(pl.positions_ned_m).reshape(-1)))
@@ -420,7 +499,35 @@ class Agent:
             "offset_log": [] if tr is None else [list(r) for r in tr.offset_log],
             "counts": {} if tr is None else dict(tr.counts),
             "filter_stats": {} if tr is None else dict(vars(tr.filter.stats)),
+            "failsafe_events": [] if self.failsafe_log is None else list(self.failsafe_log.events),
+            "failsafe_counts": {} if self.failsafe_log is None else dict(self.failsafe_log.counts),
+            "malformed_detections": self.malformed_detections(),
+            "transport": self.transport_counts(),
         }
+
+    def _detection_subs(self) -> list:
+        det_topics = (keys.DETECTIONS, keys.SIM_DETECTIONS)
+        return [s for s in self._subs if any(getattr(s, "key_expr", "").endswith("/" + t) for t in det_topics)]
+
+    def malformed_detections(self) -> dict:
+        """Detections ignored as malformed: refused by the codec on receipt (NaN/inf, wrong array lengths,
+        undecodable), refused by the tracking stage (inconsistent boxes, non-rigid pose ...), and
+        non-finite measurements the filter refused; ``total`` = their sum."""
+        codec = sum(int(getattr(s.stats, "malformed", 0)) for s in self._detection_subs())
+        tr = self.tracking
+        content = int(tr.counts.get("malformed_detections", 0)) if tr is not None else 0
+        nonfinite = int(tr.filter.stats.rejected_nonfinite) if tr is not None else 0
+        return {"refused_by_codec": codec, "invalid_content": content, "nonfinite_measurements": nonfinite,
+                "total": codec + content + nonfinite}
+
+    def transport_counts(self) -> dict:
+        """Receive counters over all subscriptions (with the simulated fault layer's drops and delays)."""
+        out = {"received": 0, "malformed": 0, "fault_dropped": 0, "fault_delayed": 0}
+        for s in self._subs:
+            st = getattr(s, "stats", None)
+            for k in out:
+                out[k] += int(getattr(st, k, 0) or 0)
+        return out
 
     # --- loops ----------------------------------------------------------------------------------------
     async def control_loop(self) -> None:
@@ -434,6 +541,8 @@ class Agent:
                     t_s = time.time()
                     formation = hasattr(src, "set_teammate_state")
                     offset = self._feed_formation(src, t_s) if formation else np.zeros(3)
+                    if formation and self.supervisor is not None:
+                        self._supervise_formation(src, t_s, np.asarray(st.position_ned_m) - offset)
                     # track mode: plan in the filter's frame (own position corrected by the estimated GPS
                     # offset), then back to the autopilot's frame for the setpoint
                     sp = src.update(t_s, np.asarray(st.position_ned_m) - offset, np.asarray(st.velocity_ned_m_s),
@@ -561,6 +670,8 @@ class Agent:
         if tr.action != Action.NONE:
             log.warning("%s: failsafe: %s -> %s", self.id, reason, action)
             self.warnings.append(reason)
+            if self.failsafe_log is not None:
+                self.failsafe_log.add(time.time(), action, [reason], source="mission")
             self._spawn(self._execute(tr.action, f"failsafe:{action}", {}), "failsafe")
 
     def health(self) -> Health:

@@ -11,7 +11,7 @@ from pathlib import Path
 from onboard.transport import TransportConfig
 from skycap.config import ConfigError
 
-__all__ = ["AgentConfig", "TrackConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
+__all__ = ["AgentConfig", "TrackConfig", "FormationFailsafeConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
 
 
 @dataclass
@@ -91,6 +91,31 @@ class OriginConfig:
 
 
 @dataclass
+class FormationFailsafeConfig:
+    """Failsafes of the formation in track mode (:mod:`onboard.formation.failsafe`), checked every control step.
+
+    Person lost (no accepted detection for ``person_lost_after_s``; before the first one, ``acquire_grace_s``
+    after the formation's start) -> hold and turn at ``search_yaw_rate_deg_s`` to look; a teammate silent
+    (no state or plan) for ``teammate_lost_after_s`` -> re-space the formation among the drones present;
+    predicted separation below the plan's minimum + ``separation_margin_m`` or geofence margin below
+    ``geofence_margin_m``, or ``max_consecutive_fallbacks`` MPC fallbacks in a row -> brake and hold; battery
+    at ``battery_return_frac`` -> return, at ``battery_land_frac`` -> land. Ground-station loss stays with
+    ``safety.gcs_heartbeat_timeout_s`` / ``safety.gcs_loss_action``.
+    """
+
+    enabled: bool = True
+    person_lost_after_s: float = 3.0
+    acquire_grace_s: float = 20.0
+    teammate_lost_after_s: float = 2.0
+    separation_margin_m: float = 0.5
+    geofence_margin_m: float = 0.5
+    max_consecutive_fallbacks: int = 5
+    battery_return_frac: float = 0.25
+    battery_land_frac: float = 0.12
+    search_yaw_rate_deg_s: float = 30.0
+
+
+@dataclass
 class TrackConfig:
     """Active capture (``mode = "track"``): cooperative person tracking and the formation MPC.
 
@@ -119,6 +144,7 @@ class TrackConfig:
     target_publish_hz: float = 10.0
     #: teammate plans/states older than this are not avoided (s)
     plan_timeout_s: float = 1.0
+    failsafe: FormationFailsafeConfig = field(default_factory=FormationFailsafeConfig)
 
 
 @dataclass
@@ -161,6 +187,13 @@ class AgentConfig:
             raise ConfigError(f"safety.sigterm_action={self.safety.sigterm_action!r}; use 'land' or 'hold'")
         if self.rates.setpoint_hz < 2:
             raise ConfigError(f"rates.setpoint_hz={self.rates.setpoint_hz}: PX4 offboard needs >= 2 Hz; use 10-50")
+        f = self.track.failsafe
+        if not (f.person_lost_after_s > 0 and f.teammate_lost_after_s > 0 and f.acquire_grace_s >= 0):
+            raise ConfigError("track.failsafe: person_lost_after_s and teammate_lost_after_s must be > 0, "
+                              "acquire_grace_s >= 0 (seconds)")
+        if not 0 <= f.battery_land_frac <= f.battery_return_frac < 1:
+            raise ConfigError(f"track.failsafe: need 0 <= battery_land_frac ({f.battery_land_frac}) <= "
+                              f"battery_return_frac ({f.battery_return_frac}) < 1")
         if not 0 < self.safety.min_altitude_m < self.safety.max_altitude_m:
             raise ConfigError("safety.min_altitude_m must be > 0 and below safety.max_altitude_m")
         return self

@@ -60,6 +60,7 @@ from skycap.errors import SkycapError
 __all__ = [
     "DEFAULT_RENDEZVOUS",
     "TransportConfig",
+    "FaultConfig",
     "TransportError",
     "Transport",
     "Received",
@@ -90,6 +91,37 @@ class TransportError(SkycapError):
 
 
 @dataclass
+class FaultConfig:
+    """Simulated network faults on RECEIVE -- a chaos/simulation option for fault tests; leave it off (the
+    defaults) on real drones.
+
+    Applies to messages this node receives on **other drones'** keys (``skycap/v1/<fleet>/<drone>/<topic>``
+    with ``<drone>`` not this node; ground-station, simulator and the node's own keys are never touched)
+    whose topic is listed: each such message is dropped with probability ``drop_prob`` (topics
+    ``drop_topics``) and delivered ``delay_s`` seconds late (topics ``delay_topics``; the
+    :class:`Received` then carries the late delivery time). Counted per subscription in
+    ``TopicStats.fault_dropped`` / ``fault_delayed``. ``seed`` makes the drop sequence reproducible.
+    """
+
+    drop_prob: float = 0.0
+    drop_topics: list[str] = field(default_factory=lambda: [_keys.STATE, _keys.DETECTIONS, _keys.FORMATION_PLAN,
+                                                            _keys.TARGET, _keys.HEALTH])
+    delay_s: float = 0.0
+    delay_topics: list[str] = field(default_factory=lambda: [_keys.DETECTIONS])
+    seed: int = 0
+
+    @property
+    def active(self) -> bool:
+        return self.drop_prob > 0.0 or self.delay_s > 0.0
+
+    def validate(self) -> None:
+        if not 0.0 <= self.drop_prob <= 1.0:
+            raise TransportError(f"transport.fault.drop_prob={self.drop_prob} must be within 0..1 (0 = off)")
+        if not 0.0 <= self.delay_s <= 60.0:
+            raise TransportError(f"transport.fault.delay_s={self.delay_s} must be within 0..60 s (0 = off)")
+
+
+@dataclass
 class TransportConfig:
     """How to join the Zenoh network (loads from TOML as part of any job's config).
 
@@ -98,7 +130,8 @@ class TransportConfig:
     free port. ``multicast_scouting``: UDP multicast discovery on the LAN (off by default: explicit
     endpoints only). ``gossip_scouting``: peers tell each other about peers they know (needed for the
     full mesh behind one rendezvous). ``zenoh_json5``: extra raw Zenoh settings, key -> JSON5 value
-    (e.g. ``{"transport/unicast/max_links" = "2"}``), applied last.
+    (e.g. ``{"transport/unicast/max_links" = "2"}``), applied last. ``fault``: simulated receive-side
+    drops and delays for fault tests (:class:`FaultConfig`; off by default).
     """
 
     mode: Literal["peer", "client"] = "peer"
@@ -107,6 +140,7 @@ class TransportConfig:
     multicast_scouting: bool = False
     gossip_scouting: bool = True
     zenoh_json5: dict[str, str] = field(default_factory=dict)
+    fault: FaultConfig = field(default_factory=FaultConfig)
 
     @classmethod
     def rendezvous(cls, endpoint: str = DEFAULT_RENDEZVOUS) -> TransportConfig:
@@ -120,6 +154,7 @@ class TransportConfig:
 
     def validate(self) -> None:
         """Raise :class:`TransportError` naming the bad field."""
+        self.fault.validate()
         if self.mode not in ("peer", "client"):
             raise TransportError(f"transport.mode {self.mode!r} must be 'peer' or 'client'")
         for name in ("listen", "connect"):
@@ -182,6 +217,8 @@ class TopicStats:
     malformed: int = 0  #: refused by the codec (malformed, unknown type, wrong version, wrong type, NaN)
     callback_errors: int = 0  #: the user callback raised
     dropped: int = 0  #: async queue full: oldest message dropped
+    fault_dropped: int = 0  #: dropped by the simulated fault layer (:class:`FaultConfig`)
+    fault_delayed: int = 0  #: delivered late by the simulated fault layer
     last_error: str = ""
 
 
@@ -336,6 +373,81 @@ class _RateLimitedLog:
         return count <= self.first or count % self.every == 0
 
 
+class _FaultInjector:
+    """The receive-side fault layer of one transport (see :class:`FaultConfig`). Thread-safe.
+
+    ``judge(key)`` -> None (drop), 0.0 (deliver now) or the delay in seconds; :meth:`later` runs a delivery
+    on the injector's own timer thread (one thread, a heap of due times, started on first use).
+    """
+
+    def __init__(self, cfg: FaultConfig, node_id: str) -> None:
+        import random
+
+        self.cfg = cfg
+        self.node_id = node_id
+        self._rng = random.Random(cfg.seed)
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._heap: list[tuple[float, int, Callable[[], Any]]] = []
+        self._n = 0
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self._drop = frozenset(cfg.drop_topics)
+        self._delay = frozenset(cfg.delay_topics)
+
+    def judge(self, key: str) -> float | None:
+        try:
+            _, node, topic = _keys.parse_key(key)
+        except ValueError:
+            return 0.0
+        if node == self.node_id or node in (_keys.GCS, _keys.SIM):
+            return 0.0
+        if topic in self._drop and self.cfg.drop_prob > 0.0:
+            with self._lock:
+                u = self._rng.random()
+            if u < self.cfg.drop_prob:
+                return None
+        if topic in self._delay and self.cfg.delay_s > 0.0:
+            return float(self.cfg.delay_s)
+        return 0.0
+
+    def later(self, delay_s: float, fn: Callable[[], Any]) -> None:
+        import heapq
+        import time
+
+        with self._cond:
+            if self._closed:
+                return
+            self._n += 1
+            heapq.heappush(self._heap, (time.monotonic() + delay_s, self._n, fn))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name=f"fault-delay-{self.node_id}", daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def _run(self) -> None:
+        import heapq
+        import time
+
+        while True:
+            with self._cond:
+                while not self._closed and (not self._heap or self._heap[0][0] > time.monotonic()):
+                    self._cond.wait(None if not self._heap else max(0.0, self._heap[0][0] - time.monotonic()))
+                if self._closed:
+                    return
+                _, _, fn = heapq.heappop(self._heap)
+            try:
+                fn()
+            except Exception:  # the delivery logs its own errors; never let the timer thread die
+                log.exception("%s: delayed delivery failed", self.node_id)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._heap.clear()
+            self._cond.notify_all()
+
+
 _OPEN_TRANSPORTS: weakref.WeakSet = weakref.WeakSet()
 
 
@@ -375,6 +487,12 @@ class Transport:
         self._stats: dict[str, TopicStats] = {}
         self._closed = False
         self._logrl = _RateLimitedLog()
+        self._fault: _FaultInjector | None = None
+        if config.fault.active:
+            self._fault = _FaultInjector(config.fault, node_id)
+            log.warning("%s: SIMULATED NETWORK FAULTS on receive: drop %.0f%% of %s from other drones, delay %s by "
+                        "%.0f ms", node_id, 100 * config.fault.drop_prob, config.fault.drop_topics,
+                        config.fault.delay_topics, 1e3 * config.fault.delay_s)
 
     # ----------------------------------------------------------------------------------------- life
     @classmethod
@@ -410,6 +528,8 @@ class Transport:
             tokens, self._tokens = list(self._tokens), []
             pubs, self._publishers = list(self._publishers.values()), {}
             qs, self._queryables = list(self._queryables.values()), {}
+        if self._fault is not None:
+            self._fault.close()
         for s in subs:
             s._closed = True
             if s._zenoh_sub is not None:
@@ -548,9 +668,24 @@ class Transport:
                 if self._logrl.should_log(stats.malformed):
                     log.warning("%s: dropped input #%d: %s", where, stats.malformed, stats.last_error)
                 return
+            fault = self._fault
+            if fault is not None:
+                delay_s = fault.judge(key)
+                if delay_s is None:
+                    stats.fault_dropped += 1
+                    return
+                if delay_s > 0.0:
+                    stats.fault_delayed += 1
+                    fault.later(delay_s, lambda: deliver(Received(key, msg, data, now_ns())))
+                    return
+            deliver(Received(key, msg, data, t_rx))
+
+        def deliver(rx: Received) -> None:
+            if sub._closed:
+                return
             stats.received += 1
             try:
-                callback(Received(key, msg, data, t_rx))
+                callback(rx)
             except Exception as e:
                 stats.callback_errors += 1
                 stats.last_error = f"callback raised {type(e).__name__}: {e}"

@@ -4,12 +4,20 @@
     skycap demo --drones 2 --duration 20 --out /tmp/f --set orbit.radius_m=6
     skycap demo --set rtk=false                        # GPS-grade position estimate (m-level bias) instead of RTK
     skycap demo --mode track --out flights/track       # active capture: find and follow the person
+    skycap demo --mode track --set faults.drop_prob=0.3 --set 'faults.kill_agent="drone_3"'   # under faults
 
 ``--mode track`` (active capture): each agent fuses its own and its teammates' person detections (simulated
 detector, ``<drone>/sim/detections``) in its cooperative filter, publishes the fused target and flies the
 formation MPC around it, starting from the operator's approximate start position of the person
 (``track.start_guess_ned_m``); GPS-grade position estimate by default (``track.rtk``) so that the filter's
 own-offset correction shows. The summary then adds the tracking figures (see :mod:`groundstation.summary`).
+
+Fault injection (``faults.*``, :class:`FaultsDemoConfig`; simulation/chaos options, all off by default):
+teammate messages dropped / teammates' detections delayed at every agent (the transport's receive-side
+fault layer, ``transport.fault``), one agent SIGKILLed mid-flight (its vehicle then lands on offboard loss;
+the others re-space), a GPS jump of one vehicle's estimate (in the simulator's estimator), malformed
+detections (NaN, inverted boxes, broken poses) published by this launcher on the drones' detection keys.
+What was injected goes into ``summary.json`` under ``faults``.
 
 What it launches (each an OS process, as on the real system; logs in ``<out>/logs/``):
 
@@ -80,6 +88,30 @@ class TrackDemoConfig:
 
 
 @dataclass
+class FaultsDemoConfig:
+    """Fault injection (simulation / chaos testing; all off by default). Times are seconds after the plan's
+    start time."""
+
+    #: share of the messages each agent receives from its teammates that is dropped (state, detections,
+    #: formation plans, targets, health: ``transport.fault.drop_prob`` of every agent)
+    drop_prob: float = 0.0
+    #: extra delay (s) of the teammates' detections at every agent (``transport.fault.delay_s``)
+    detection_delay_s: float = 0.0
+    #: SIGKILL this drone's agent (e.g. "drone_3") at ``kill_agent_at_s``; the simulator then lands its vehicle
+    #: on offboard loss (``failsafe.offboard_loss_action="land"`` unless sim_set says otherwise)
+    kill_agent: str = ""
+    kill_agent_at_s: float = 10.0
+    #: a sudden jump of this drone's position estimate by ``gps_jump_ned_m`` at ``gps_jump_at_s``
+    gps_jump_drone: str = ""
+    gps_jump_at_s: float = 10.0
+    gps_jump_ned_m: list[float] = field(default_factory=lambda: [3.0, 0.0, 0.0])
+    #: malformed detections per second published by this launcher from the plan's start (in turn: a NaN box
+    #: and a non-rigid camera pose on the first drone's own detector key, an inverted box and a NaN pose as the
+    #: second drone's shared detections)
+    malformed_detections_hz: float = 0.0
+
+
+@dataclass
 class DemoConfig:
     """Configuration of ``skycap demo`` (``--config demo.toml``, ``--set orbit.radius_m=6``)."""
 
@@ -109,6 +141,7 @@ class DemoConfig:
     #: "orbit" (the plan's circle around the centre) or "track" (active capture, see TrackDemoConfig)
     mode: str = "orbit"
     track: TrackDemoConfig = field(default_factory=TrackDemoConfig)
+    faults: FaultsDemoConfig = field(default_factory=FaultsDemoConfig)
     #: timeouts (s)
     ready_timeout_s: float = 60.0
     takeoff_timeout_s: float = 60.0
@@ -125,6 +158,18 @@ class DemoConfig:
             raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
         if self.mode == "track" and not self.cameras:
             raise ConfigError("mode='track' needs the cameras (cameras=true): the drones find the person in them")
+        ids = _drone_ids(self.drones)
+        f = self.faults
+        for name in ("kill_agent", "gps_jump_drone"):
+            v = getattr(f, name)
+            if v and v not in ids:
+                raise ConfigError(f"faults.{name}={v!r} is not one of the drones {ids}")
+        if f.kill_agent and self.drones < 2:
+            raise ConfigError("faults.kill_agent needs at least 2 drones (the others must carry on)")
+        if len(f.gps_jump_ned_m) != 3:
+            raise ConfigError(f"faults.gps_jump_ned_m={f.gps_jump_ned_m}: give [north, east, down] metres")
+        if not 0.0 <= f.drop_prob <= 1.0 or f.detection_delay_s < 0 or f.malformed_detections_hz < 0:
+            raise ConfigError("faults: drop_prob in 0..1, detection_delay_s >= 0, malformed_detections_hz >= 0")
         if self.duration_s < self.settle_s + 5:
             raise ConfigError(f"duration_s={self.duration_s} leaves no steady orbit after settle_s={self.settle_s}; "
                               f"use --duration {self.settle_s + 10:.0f} or more")
@@ -180,9 +225,9 @@ class _Procs:
         self.items.append((name, p))
         return p
 
-    def check_alive(self) -> None:
+    def check_alive(self, skip: set[str] | frozenset = frozenset()) -> None:
         for name, p in self.items:
-            if p.poll() is not None:
+            if name not in skip and p.poll() is not None:
                 raise SkycapError(f"{name} exited early (code {p.returncode}); see {self.log_dir / (name + '.log')}")
 
     def stop(self, names: list[str] | None = None, timeout_s: float = 30.0) -> dict[str, int]:
@@ -240,6 +285,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")
     if (cfg.track.rtk if track else cfg.rtk):
         sim_set += ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
+    fc = cfg.faults
+    if fc.kill_agent:
+        sim_set.append('failsafe.offboard_loss_action="land"')  # PX4 COM_OBL_RC_ACT=land for the orphaned vehicle
     sim_set += cfg.sim_set
     save_config(cfg, out / "config.toml")
     py = [sys.executable, "-m", "skycap.cli"]
@@ -250,6 +298,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                               SimTruth)
     fleet = FleetClient(cfg.fleet, bus, heartbeat_hz=2.0)
     summary = None
+    killed: set[str] = set()
+    fault_report: dict = {"config": {k: v for k, v in vars(cfg.faults).items()}}
     t_begin = time.monotonic()
     try:
         # 1. simulator (+ truth); 2. cameras; 3. agents
@@ -258,6 +308,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                    "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
         for s in sim_set:
             sim_cmd += ["--set", s]
+        if fc.gps_jump_drone:
+            sim_cmd += ["--gps-jump", ",".join([str(ids.index(fc.gps_jump_drone)), str(fc.gps_jump_at_s),
+                                                *map(str, fc.gps_jump_ned_m)])]
         procs.start("sim", sim_cmd)
         if cfg.cameras:
             cam = _camera_command()
@@ -279,6 +332,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                 cmd += ["--set", "mode=track", "--set", "rates.state_publish_hz=25", "--set",
                         f"track.camera_position_sigma_m={0.05 if cfg.track.rtk else 1.0}", "--set",
                         f"track.person_height_m={cfg.track.person_height_m}"]
+            if fc.drop_prob > 0 or fc.detection_delay_s > 0:
+                cmd += ["--set", f"transport.fault.drop_prob={fc.drop_prob}", "--set",
+                        f"transport.fault.delay_s={fc.detection_delay_s}", "--set", f"transport.fault.seed={i + 1}"]
             for s in cfg.agent_set:
                 cmd += ["--set", s]
             procs.start(d, cmd)
@@ -307,23 +363,39 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         fleet.send_plan(plan)
         _require(fleet.wait_acks(plan.plan_id, ids, 5), ids, "plan")
         _require(fleet.command("start", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "start")
-        t_orbit_end = plan.start_time_ns * 1e-9 + cfg.duration_s
+        t_start = plan.start_time_ns * 1e-9
+        t_orbit_end = t_start + cfg.duration_s
         log.info("%s for %.0f s", "tracking" if track else "orbiting", cfg.duration_s)
         next_table = time.time()
+        injector = _MalformedInjector(bus, cfg.fleet, ids, fc.malformed_detections_hz) if fc.malformed_detections_hz > 0 else None
         while time.time() < t_orbit_end:
-            procs.check_alive()
-            if time.time() >= next_table:
+            procs.check_alive(skip=killed)
+            now = time.time()
+            if fc.kill_agent and fc.kill_agent not in killed and now >= t_start + fc.kill_agent_at_s:
+                p = dict(procs.items)[fc.kill_agent]
+                os.killpg(p.pid, signal.SIGKILL)
+                killed.add(fc.kill_agent)
+                fault_report["agent_killed"] = {"drone": fc.kill_agent, "t_s": round(now, 3),
+                                                "after_start_s": round(now - t_start, 2)}
+                log.warning("FAULT: killed %s's agent (SIGKILL, pid %d) %.1f s after the start", fc.kill_agent, p.pid,
+                            now - t_start)
+            if injector is not None and now >= t_start:
+                injector.tick(now)
+            if now >= next_table:
                 next_table += 10.0
                 print(fleet.table(), flush=True)
-            time.sleep(0.5)
-        _require(fleet.command("land", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "land")
-        if not fleet.wait_until(all_(lambda f, d: f.healths[d].state == "landed"), cfg.land_timeout_s, "landed"):
+            time.sleep(0.5 if injector is None else min(0.5, 0.5 / fc.malformed_detections_hz))
+        if injector is not None:
+            fault_report["malformed_detections_injected"] = dict(injector.counts)
+        alive = [d for d in ids if d not in killed]
+        _require(fleet.command("land", wait_s=10, expect=alive, results=("accepted", "refused", "failed")), alive, "land")
+        if not fleet.wait_until(lambda f: all(f.healths[d].state == "landed" for d in alive), cfg.land_timeout_s, "landed"):
             log.error("not every drone landed within %.0f s", cfg.land_timeout_s)
         print(fleet.table(), flush=True)
     finally:
-        codes = procs.stop([d for d in ids], timeout_s=30.0)
+        codes = procs.stop([d for d in ids if d not in killed], timeout_s=30.0)
         codes.update(procs.stop(None, timeout_s=15.0))
-        bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM)}
+        bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM) and n not in killed}
         if bad:
             log.warning("processes that did not exit cleanly: %s", bad)
         fleet.close()
@@ -359,6 +431,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         recon["accuracy_vs_truth"] = reconstruction_accuracy(out, motion_npz=npz,
                                                              window_s=summary["fleet"]["steady_orbit_window_s"])
     summary["reconstruction"] = recon
+    if cfg.faults != FaultsDemoConfig():
+        summary["faults"] = fault_report
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(format_table(summary), flush=True)
     if track:
@@ -373,6 +447,63 @@ def run_demo(cfg: DemoConfig) -> dict | None:
               f"PA-MPJPE {acc['pa_mpjpe_mm']:.1f} mm", flush=True)
     print(f"summary: {out / 'summary.json'}", flush=True)
     return summary
+
+
+class _MalformedInjector:
+    """Publishes malformed detections at ``rate_hz`` (fault injection), cycling through four kinds:
+
+    0. a NaN box on the first drone's own detector key (``<d1>/sim/detections``): refused by the codec on receipt;
+    1. an inverted box as the second drone's shared detections (``<d2>/detections``): decodes, the tracking
+       stage of every other drone must ignore it;
+    2. a non-rigid camera pose on ``<d1>/sim/detections``: decodes, the first drone's stage must ignore it;
+    3. a NaN camera pose as ``<d2>/detections``: refused by the codec on receipt.
+
+    With one drone, every kind goes to its own detector key.
+    """
+
+    KINDS = ("nan_box", "inverted_box", "non_rigid_pose", "nan_pose")
+
+    def __init__(self, bus, fleet: str, ids: list[str], rate_hz: float):
+        self.bus, self.fleet, self.ids, self.period_s = bus, fleet, ids, 1.0 / rate_hz
+        self.t_next = 0.0
+        self.n = 0
+        self.counts = {k: 0 for k in self.KINDS}
+
+    def message(self, kind: str, t_ns: int):
+        from shared_msgs import encode, keys, stamp_sent
+        from shared_msgs.messages import BoundingBox, Detections
+
+        own, mate = self.ids[0], self.ids[1] if len(self.ids) > 1 else self.ids[0]
+        key = keys.drone_key(self.fleet, own, keys.SIM_DETECTIONS) if kind in ("nan_box", "non_rigid_pose") or mate == own \
+            else keys.drone_key(self.fleet, mate, keys.DETECTIONS)
+        sender = own if "sim/detections" in key else mate
+        T = [1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, -6.0, 0, 0, 0, 1.0]
+        box = dict(x_min_px=100.0, y_min_px=100.0, x_max_px=140.0, y_max_px=200.0, score=0.9)
+        if kind == "nan_box":
+            box["x_min_px"] = float("nan")
+        elif kind == "inverted_box":
+            box["x_max_px"], box["x_min_px"] = 100.0, 140.0
+        elif kind == "non_rigid_pose":
+            T = [2.0 * v if i in (0, 5, 10) else v for i, v in enumerate(T)]
+        elif kind == "nan_pose":
+            T[3] = float("nan")
+        msg = Detections(header=Detections.make_header(sender, t_ns, 10_000_000 + self.n), camera_id="chaos",
+                         frame_index=10_000_000 + self.n, detector="fault_injector", mode="simulated",
+                         boxes=[BoundingBox(**box)], width_px=960, height_px=540, T_world_cam=tuple(T))
+        return key, encode(stamp_sent(msg))  # raw bytes: the sender-side validation is bypassed on purpose
+
+    def tick(self, now_s: float) -> None:
+        if now_s < self.t_next:
+            return
+        self.t_next = now_s + self.period_s
+        kind = self.KINDS[self.n % len(self.KINDS)]
+        key, data = self.message(kind, int(now_s * 1e9))
+        try:
+            self.bus.publish_raw(key, data)
+            self.counts[kind] += 1
+        except Exception as e:
+            log.warning("malformed-detection injection failed: %s", e)
+        self.n += 1
 
 
 def _require(acks: dict, ids: list[str], what: str) -> None:
@@ -416,6 +547,9 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--gimbal-pitch-deg", type=float, default=None,
                     help="camera gimbal pitch reported in the truth (the simulator has no MAVLink gimbal yet)")
+    ap.add_argument("--gps-jump", default=None, metavar="INDEX,AT_S,N,E,D",
+                    help="fault injection: vehicle INDEX's position estimate jumps by (N, E, D) m AT_S seconds after "
+                         "the start time of the first orbit plan seen on the fleet's plan key")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args(argv)
     gimbal_rad = math.radians(args.gimbal_pitch_deg) if args.gimbal_pitch_deg is not None else 0.0
@@ -448,6 +582,28 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
         bus.publish(key, SimTruth(header=SimTruth.make_header(keys.SIM, t_ns), vehicles=vehicles, **extra))
 
     world.add_tick_hook(publish_truth, rate_hz=args.truth_hz)
+    if args.gps_jump:
+        from shared_msgs import OrbitPlan
+
+        try:
+            idx_s, at_s, *off = args.gps_jump.split(",")
+            idx, at_s, off = int(idx_s), float(at_s), [float(v) for v in off]
+            if len(off) != 3 or not 0 <= idx < len(world.vehicles):
+                raise ValueError
+        except ValueError:
+            raise SkycapError(f"--gps-jump {args.gps_jump!r}: give INDEX,AT_S,N,E,D with INDEX < "
+                              f"{len(world.vehicles)}") from None
+        scheduled: list[int] = []
+
+        def on_plan(rx) -> None:  # Zenoh thread: schedule once, in simulation time
+            if scheduled:
+                return
+            scheduled.append(1)
+            at_sim_s = world.t_s + (rx.msg.start_time_ns * 1e-9 + at_s - time.time())
+            world.vehicles[idx].schedule_gps_jump(at_sim_s, off)
+            log.warning("FAULT: GPS jump of vehicle %d by %s m scheduled at sim t=%.1f s", idx, off, at_sim_s)
+
+        bus.subscribe(keys.gcs_key(args.fleet, keys.PLAN), on_plan, OrbitPlan)
 
     async def main() -> None:
         stop = asyncio.Event()

@@ -12,7 +12,14 @@ Priority, highest first (the first that applies wins; every condition found is l
 6. otherwise ``CONTINUE``.
 
 The decision carries the slot angles for the drones present whatever the action, so the caller can always
-use them (they only change when the present set changes).
+use them (they only change when the present set changes). The operator's angles are used while exactly the
+drones they name are present; after a loss (or a join) the drones present are spaced equally, rotated to
+where they are.
+
+How the agent acts on a decision (:func:`respond`): ``RESPACE`` / ``CONTINUE`` -> fly the formation at the
+decision's slot angle; ``HOLD`` -> brake and hold where the drone is; ``HOLD_AND_SEARCH`` -> hold and yaw to
+look for the person; ``RETURN`` / ``LAND`` -> the mission's failsafe path (autopilot return / land).
+:class:`FailsafeLog` keeps every change of decision (for the log, the counters and the flight statistics).
 """
 
 from __future__ import annotations
@@ -24,7 +31,8 @@ import numpy as np
 
 from onboard.formation.slots import assign_slot_angles
 
-__all__ = ["FailsafeAction", "FailsafeConfig", "FailsafeInputs", "FailsafeDecision", "decide", "FormationSupervisor"]
+__all__ = ["FailsafeAction", "FailsafeConfig", "FailsafeInputs", "FailsafeDecision", "decide", "FormationSupervisor",
+           "FailsafeResponse", "respond", "FailsafeLog", "person_seen_s"]
 
 
 class FailsafeAction(str, enum.Enum):
@@ -54,7 +62,9 @@ class FailsafeInputs:
 
     t_s: now; t_person_seen_s: newest accepted detection (None = never); teammates_last_seen_s: newest
     message time per teammate id (self excluded); predicted_min_separation_m / predicted_geofence_margin_m:
-    over the current plan (inf if not applicable); positions_ned_m: known positions (for slot assignment).
+    over the current plan (inf if not applicable); positions_ned_m: known positions (for slot assignment);
+    operator_angles_rad: the operator's slot angles of the planned formation (used while exactly those drones
+    are present).
     """
 
     t_s: float
@@ -115,7 +125,8 @@ def decide(inp: FailsafeInputs, previous_present: tuple[str, ...] | None, cfg: F
     order = [FailsafeAction.LAND, FailsafeAction.RETURN, FailsafeAction.HOLD, FailsafeAction.HOLD_AND_SEARCH, FailsafeAction.RESPACE]
     action = next((a for a in order if a in actions), FailsafeAction.CONTINUE)
     positions = {i: np.asarray(p, dtype=float) for i, p in inp.positions_ned_m.items() if i in present}
-    slots = assign_slot_angles(list(present), np.asarray(inp.person_ned_m, dtype=float), positions, inp.operator_angles_rad)
+    op = inp.operator_angles_rad if inp.operator_angles_rad and set(inp.operator_angles_rad) == set(present) else None
+    slots = assign_slot_angles(list(present), np.asarray(inp.person_ned_m, dtype=float), positions, op)
     return FailsafeDecision(action, tuple(reasons), present, slots)
 
 
@@ -135,3 +146,67 @@ class FormationSupervisor:
             self.slot_angles_rad = dict(d.slot_angles_rad)
         self.present = d.present_ids
         return dataclasses.replace(d, slot_angles_rad=dict(self.slot_angles_rad))
+
+
+def person_seen_s(t_last_accepted_s: float | None, t_formation_start_s: float, acquire_grace_s: float,
+                  person_lost_after_s: float) -> float:
+    """The person's "last seen" time for :class:`FailsafeInputs`: the newest accepted detection; before the
+    first one, the drones fly to the operator's approximate start position for ``acquire_grace_s`` before the
+    person counts as lost (the clock starts so that "lost" fires ``acquire_grace_s`` after the formation's
+    start)."""
+    if t_last_accepted_s is not None:
+        return float(t_last_accepted_s)
+    return float(t_formation_start_s + acquire_grace_s - person_lost_after_s)
+
+
+@dataclasses.dataclass(frozen=True)
+class FailsafeResponse:
+    """What the agent does with a decision: ``hold`` (brake and hold position), ``search`` (yaw to look for
+    the person while holding), ``slot_angle_rad`` (this drone's slot, None if the decision lacks it) and
+    ``mission_action`` ("return" / "land" through the mission's failsafe path, or None)."""
+
+    hold: bool
+    search: bool
+    slot_angle_rad: float | None
+    mission_action: str | None
+
+
+def respond(decision: FailsafeDecision, self_id: str) -> FailsafeResponse:
+    a = decision.action
+    slot = decision.slot_angles_rad.get(self_id)
+    mission = {FailsafeAction.RETURN: "return", FailsafeAction.LAND: "land"}.get(a)
+    hold = a in (FailsafeAction.HOLD, FailsafeAction.HOLD_AND_SEARCH)
+    return FailsafeResponse(hold=hold, search=a is FailsafeAction.HOLD_AND_SEARCH, slot_angle_rad=slot,
+                            mission_action=mission)
+
+
+class FailsafeLog:
+    """Every change of the failsafe decision (its action or the set of drones present), with counters.
+
+    ``events``: list of dicts (``t_s``, ``action``, ``reasons``, ``present``, ``slot_angle_rad``, ``source``);
+    ``counts``: changes into each action; :meth:`note` returns the event when the decision changed (else None).
+    """
+
+    def __init__(self, self_id: str):
+        self.self_id = self_id
+        self.events: list[dict] = []
+        self.counts: dict[str, int] = {}
+        self._last: tuple[FailsafeAction, tuple[str, ...]] | None = None
+
+    def note(self, t_s: float, d: FailsafeDecision) -> dict | None:
+        key = (d.action, d.present_ids)
+        if key == self._last:
+            return None
+        first = self._last is None
+        self._last = key
+        if first and d.action is FailsafeAction.CONTINUE:
+            return None  # the normal start is not an event
+        return self.add(t_s, d.action.value, d.reasons, d.present_ids, d.slot_angles_rad.get(self.self_id))
+
+    def add(self, t_s: float, action: str, reasons, present=(), slot_angle_rad: float | None = None,
+            source: str = "formation") -> dict:
+        ev = {"t_s": round(float(t_s), 3), "action": str(action), "reasons": list(reasons), "present": list(present),
+              "slot_angle_rad": None if slot_angle_rad is None else round(float(slot_angle_rad), 4), "source": source}
+        self.events.append(ev)
+        self.counts[ev["action"]] = self.counts.get(ev["action"], 0) + 1
+        return ev

@@ -13,6 +13,12 @@ Pure logic, no I/O: the agent hands it Detections messages and publishes what it
 
 It also keeps the series the flight summary needs: the own-position offset estimate over time
 (``offset_log``: (t_ns, north, east, down)) and per-frame ROI hits.
+
+Malformed input (:func:`detection_problem`: a camera pose that is not a rigid transform, a covariance with
+negative variances, impossible image size, boxes with non-finite or inverted edges, negative variances or a
+score outside [0, 1]) is ignored and counted (``counts["malformed_detections"]``): a message with a bad pose
+or size entirely, otherwise only its bad boxes. NaN/inf never get here over Zenoh (the codec refuses them on
+receipt); they are refused here too for direct callers.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from onboard.tracking.measurement import CameraIntrinsics, MeasurementConfig, me
 from onboard.tracking.roi import DetectorPlan, RoiConfig, plan_detection
 from shared_msgs.messages import CameraInfo, Detections, TargetEstimate
 
-__all__ = ["TrackingStage", "TrackingStageConfig"]
+__all__ = ["TrackingStage", "TrackingStageConfig", "detection_problem", "box_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +52,45 @@ class TrackingStageConfig:
     ground_down_m: float = 0.0
 
 
+def box_problem(b) -> str | None:
+    """Why a :class:`shared_msgs.messages.BoundingBox` is malformed (None when it is usable)."""
+    edges = (b.x_min_px, b.y_min_px, b.x_max_px, b.y_max_px)
+    var = (b.var_x_min_px2, b.var_y_min_px2, b.var_x_max_px2, b.var_y_max_px2)
+    if not all(np.isfinite(edges)) or not all(np.isfinite(var)) or not np.isfinite(b.score):
+        return "non-finite box"
+    if not (b.x_max_px > b.x_min_px and b.y_max_px > b.y_min_px):
+        return "inverted or empty box"
+    if min(var) < 0:
+        return "negative edge variance"
+    if not 0.0 <= b.score <= 1.0:
+        return f"score {b.score} outside [0, 1]"
+    return None
+
+
+def detection_problem(det: Detections, rigid_tol: float = 1e-3) -> str | None:
+    """Why a whole :class:`Detections` message is malformed (None when it is usable): image size, camera
+    pose (16 finite floats of a rigid transform: orthonormal rotation with determinant +1, last row 0 0 0 1),
+    pose covariance (empty or 36 finite floats with non-negative diagonal)."""
+    if not (det.width_px > 0 and det.height_px > 0):
+        return f"image size {det.width_px}x{det.height_px}"
+    if len(det.T_world_cam) != 16:
+        return f"T_world_cam has {len(det.T_world_cam)} values, not 16"
+    T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4)
+    if not np.all(np.isfinite(T)):
+        return "non-finite T_world_cam"
+    R = T[:3, :3]
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > rigid_tol or np.abs(R.T @ R - np.eye(3)).max() > rigid_tol \
+            or np.linalg.det(R) < 0:
+        return "T_world_cam is not a rigid transform"
+    if len(det.T_world_cam_cov) not in (0, 36):
+        return f"T_world_cam_cov has {len(det.T_world_cam_cov)} values, not 0 or 36"
+    if det.T_world_cam_cov:
+        C = np.asarray(det.T_world_cam_cov, dtype=float).reshape(6, 6)
+        if not np.all(np.isfinite(C)) or np.diag(C).min() < 0:
+            return "T_world_cam_cov is not a covariance"
+    return None
+
+
 class TrackingStage:
     """One drone's tracking (see the module doc)."""
 
@@ -56,7 +101,9 @@ class TrackingStage:
         self.intrinsics: CameraIntrinsics | None = None
         self.last_plan: DetectorPlan | None = None
         self.offset_log: list[tuple[int, float, float, float]] = []
-        self.counts = {"own_frames": 0, "own_measurements": 0, "teammate_measurements": 0, "roi_planned": 0}
+        self.counts = {"own_frames": 0, "own_measurements": 0, "teammate_measurements": 0, "roi_planned": 0,
+                       "malformed_detections": 0, "malformed_boxes": 0}
+        self.last_malformed: str = ""
         self._seq = 0
 
     def set_camera_info(self, info: CameraInfo) -> None:
@@ -66,6 +113,26 @@ class TrackingStage:
         if self.intrinsics is not None and (self.intrinsics.width_px, self.intrinsics.height_px) == (det.width_px, det.height_px):
             return self.intrinsics
         return self.intrinsics  # teammates fly the same camera model; None until our own info arrives
+
+    def _sanitise(self, det: Detections) -> Detections | None:
+        """The message without its malformed boxes; None when the message as a whole is malformed. Counts both."""
+        why = detection_problem(det)
+        if why is None:
+            bad = [(b, box_problem(b)) for b in det.boxes]
+            bad = [(b, w) for b, w in bad if w is not None]
+            if not bad:
+                return det
+            self.counts["malformed_boxes"] += len(bad)
+            why = f"{len(bad)} malformed box(es): {bad[0][1]}"
+            det = msgspec.structs.replace(det, boxes=[b for b in det.boxes if box_problem(b) is None])
+        else:
+            det = None
+        self.counts["malformed_detections"] += 1
+        self.last_malformed = why
+        n = self.counts["malformed_detections"]
+        if n <= 5 or n % 100 == 0:
+            log.warning("%s: ignored malformed detections #%d: %s", self.drone_id, n, why)
+        return det
 
     def _fuse(self, det: Detections) -> int:
         intr = self._intrinsics_of(det)
@@ -81,8 +148,12 @@ class TrackingStage:
             self.filter.add_frame(ms)
         return len(ms)
 
-    def on_own_detections(self, det: Detections) -> Detections:
-        """Fuse this drone's detections; returns the message to share (``roi_px`` = the ROI planned for it)."""
+    def on_own_detections(self, det: Detections) -> Detections | None:
+        """Fuse this drone's detections; returns the message to share (``roi_px`` = the ROI planned for it),
+        None when the message was malformed (ignored and counted; its good boxes, if any, are kept)."""
+        det = self._sanitise(det)
+        if det is None:
+            return None
         self.counts["own_frames"] += 1
         if len(det.T_world_cam_cov) != 36:
             c = self.cfg
@@ -106,13 +177,14 @@ class TrackingStage:
     @staticmethod
     def in_reported_frame(est: TrackEstimate) -> TrackEstimate:
         """The estimate as seen from this drone's reported (GPS) frame, in which its camera pose is given:
-        person at p + b, position covariance widened by the offset's."""
-        cov = est.covariance.copy()
-        cov[:3, :3] = cov[:3, :3] + est.offset_cov_m2
-        return dataclasses.replace(est, position_ned_m=est.position_ned_m + est.offset_ned_m, covariance=cov)
+        person at p + b, with the covariance of p + b (see :meth:`TrackEstimate.in_reported_frame`)."""
+        return est.in_reported_frame()
 
     def on_teammate_detections(self, det: Detections) -> None:
         if det.header.sender_id == self.drone_id:
+            return
+        det = self._sanitise(det)
+        if det is None:
             return
         self.counts["teammate_measurements"] += self._fuse(det)
 

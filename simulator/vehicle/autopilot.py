@@ -196,7 +196,18 @@ class SimVehicle:
         self._offboard_sp_t_s = -math.inf
         self._battery_failsafe_done = False
         self._battery_low_warned = False
+        #: scheduled GPS jumps [(sim time s, offset (3,))] (fault injection: :meth:`schedule_gps_jump`)
+        self._gps_jumps: list[tuple[float, np.ndarray]] = []
+        self.gps_jumps_done: list[tuple[float, tuple[float, float, float]]] = []
         self._update_estimate()
+
+    def schedule_gps_jump(self, at_s: float, offset_ned_m) -> None:
+        """Fault injection: at simulation time ``at_s`` the position estimate jumps by ``offset_ned_m`` (3,) m
+        (the estimator's bias steps; the vehicle then flies its setpoints in the jumped frame)."""
+        off = np.asarray(offset_ned_m, dtype=float).reshape(3)
+        if not (math.isfinite(at_s) and np.all(np.isfinite(off))):
+            raise ValueError(f"GPS jump needs a finite time and offset, got at_s={at_s}, offset={offset_ned_m!r}")
+        self._gps_jumps = sorted([*self._gps_jumps, (float(at_s), off)], key=lambda j: j[0])
 
     # ------------------------------------------------------------------ parameters
     def _apply_params(self) -> None:
@@ -435,6 +446,13 @@ class SimVehicle:
         """Advance to ``t_s`` (seconds since start) by ``dt_s``: estimator, commander, controller, physics."""
         self.t_s = t_s
         self.est_model.step(dt_s)
+        while self._gps_jumps and self._gps_jumps[0][0] <= t_s:
+            _, off = self._gps_jumps.pop(0)
+            self.est_model.jump(off)
+            self.gps_jumps_done.append((t_s, tuple(float(v) for v in off)))
+            log.warning("vehicle %d: SIMULATED GPS JUMP of %s m (|%.2f| m) at t=%.2f s", self.system_id,
+                        np.round(off, 2).tolist(), float(np.linalg.norm(off)), t_s)
+            self._say(4, f"Simulated GPS jump {float(np.linalg.norm(off)):.1f} m")
         self._update_estimate()
         if not self.gps_ok and t_s >= self.cfg.estimator.gps_lock_delay_s:
             self.gps_ok = True

@@ -63,7 +63,9 @@ class EstimatorErrorModel:
       ``pos_bias_time_constant_s``) + small white noise;
     * velocity: white noise;
     * attitude: a rotation error with per-axis std ``att_noise_std_deg`` (Gauss-Markov,
-      ``att_noise_time_constant_s``): ``R_est = R_true @ small_rotation(err)``.
+      ``att_noise_time_constant_s``): ``R_est = R_true @ small_rotation(err)``;
+    * :meth:`jump`: a sudden step of the position bias (a GPS jump, e.g. a multipath or satellite-set
+      change; fault tests). It stays in the bias, which then relaxes with its correlation time.
     """
 
     def __init__(self, cfg: EstimatorConfig, seed: int):
@@ -76,6 +78,13 @@ class EstimatorErrorModel:
         self.att_err_rad = self.att_sigma_rad * self.rng.standard_normal(3)
         self.pos_noise_m = np.zeros(3)
         self.vel_noise_m_s = np.zeros(3)
+
+    def jump(self, offset_ned_m) -> None:
+        """Add ``offset_ned_m`` (3,) to the position bias now (reported position jumps by it)."""
+        off = np.asarray(offset_ned_m, dtype=float).reshape(3)
+        if not np.all(np.isfinite(off)):
+            raise ValueError(f"GPS jump offset must be 3 finite metres (north, east, down), got {offset_ned_m!r}")
+        self.pos_bias_m = self.pos_bias_m + off
 
     def step(self, dt_s: float) -> None:
         c = self.cfg
