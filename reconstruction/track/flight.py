@@ -175,10 +175,10 @@ def flight_observations(recordings: list[DroneRecording], person_height_m: float
     from onboard.tracking.measurement import MeasurementConfig, measurements_from_detections
 
     mcfg = MeasurementConfig() if person_height_m is None else dataclasses.replace(MeasurementConfig(), person_height_m=person_height_m)
-    if measurement_mode is not None:
-        mcfg = dataclasses.replace(mcfg, mode=measurement_mode)
     cov = tuple(float(v) for v in np.diag([camera_position_sigma_m**2] * 3 + [camera_rotation_sigma_rad**2] * 3).reshape(-1))
     kw = dict(ground_down_m=ground_down_m, min_score=min_score, config=mcfg)
+    if measurement_mode is not None:
+        kw["mode"] = measurement_mode
     out: list[Observation] = []
     sig = np.zeros((len(recordings), 3))
     for di, r in enumerate(recordings):
