@@ -1,17 +1,26 @@
 """Cooperative detection-and-tracking (CDT) filter: one per drone, pure numpy.
 
-State (9): ``x = [p (3), v (3), b (3)]`` in NED metres — the person's centre position ``p`` and velocity
-``v``, and this drone's own position offset ``b`` (its reported/GPS position minus its true position).
+State ``x = [p (3), v (3), b_self (3), b_1 (3), ..., b_k (3)]`` in NED metres — the person's centre position
+``p`` and velocity ``v``, this drone's own position offset ``b_self`` (its reported/GPS position minus its true
+position; always ``x[6:9]``) and, with ``fleet_offsets`` (default), one offset per teammate heard from, added
+when its first detection arrives (9 states for one drone, 6 + 3 N for a fleet of N).
 
-Measurement models (AirCap's formulation):
+Measurement models:
 
 * **own detection** (source == ``self_id``): the measurement is computed from the camera pose reported by
-  this drone, whose position is ``true + b``, so ``z = p + b + noise``: ``H_self = [I 0 I]``, noise
-  covariance :attr:`PositionMeasurement.cov_no_cam_position_m2` (the camera-position part is the state ``b``)
+  this drone, whose position is ``true + b_self``, so ``z = p + b_self + noise``: ``H = [I 0 I 0 ...]`` (exact
+  for the height prior, whose point moves with the camera; with the feet-on-the-ground term a camera *height*
+  error slides the point along the ray instead -- using that exact sensitivity made the vertical offsets
+  swing by metres during take-off, where the ray is near the horizon, so the identity is kept), noise
+  covariance :attr:`PositionMeasurement.cov_no_cam_position_m2` (the camera-position part is the state)
   plus ``self_residual_position_var_m2`` (the white part of the GPS error).
-* **teammate's detection**: ``z = p + b_j + noise`` where ``b_j`` is the teammate's offset, unknown here and
-  treated as noise: ``H_other = [I 0 0]``, covariance :attr:`PositionMeasurement.cov_m2` (which includes the
-  teammate's camera position covariance). Teammates' detections pin ``p``; mine then observe ``b``.
+* **teammate j's detection**: ``z = p + b_j + noise``, the same model with ``b_j``'s block. (AirCap's filter
+  kept only ``b_self`` and treated ``b_j`` as white noise (``fleet_offsets=False``: ``H = [I 0 0]``, covariance
+  :attr:`PositionMeasurement.cov_m2`); but a GPS bias is slow, so averaging a teammate's detections over time
+  does not average its bias away: that filter places the person in the mean frame of the *teammates* and each
+  drone ends up with a different estimate. With every offset a state and all of them zero-mean a priori, every
+  drone's filter places the person in the mean frame of the whole fleet (the common part of the biases is
+  unobservable without an absolute reference), the drones agree, and each offset is estimated relative to it.)
 
 Process model: ``v`` is a first-order Gauss-Markov (Ornstein-Uhlenbeck) process with time constant
 ``velocity_tau_s`` (~3 s) and stationary std ``velocity_sigma_m_s``; ``p`` integrates ``v``; ``b`` is
@@ -74,6 +83,7 @@ class TrackerConfig:
     predicting_after_s: float = 1.0  #: status "predicting" when the newest accepted measurement is older
     source_window_s: float = 3.0  #: a teammate counts as a source if it contributed within this window
     estimate_offset: bool = True  #: False: 6-state filter behaviour (own detections as H_other)
+    fleet_offsets: bool = True  #: a GPS-offset state per teammate too (False: AirCap's 9 states, see the module doc)
 
     def __post_init__(self):
         for name in ("velocity_tau_s", "offset_tau_s", "reset_after_s", "velocity_sigma_m_s", "offset_sigma_m"):
@@ -101,7 +111,8 @@ class TrackEstimate:
     """The filter's estimate at ``t_ns``.
 
     position_ned_m, velocity_ned_m_s, offset_ned_m: (3,); covariance: (6, 6) over (p, v);
-    offset_cov_m2: (3, 3).
+    offset_cov_m2: (3, 3); position_offset_cov_m2: (3, 3) cross-covariance of p and the own offset (they are
+    strongly correlated: with every drone's offset a state, p's common-mode uncertainty is shared with b).
     """
 
     t_ns: int
@@ -113,6 +124,18 @@ class TrackEstimate:
     status: TrackStatus
     num_sources: int
     t_last_measurement_ns: int
+    position_offset_cov_m2: np.ndarray | None = None
+    velocity_offset_cov: np.ndarray | None = None  #: (3, 3) cross-covariance of v and the own offset
+
+    def in_reported_frame(self) -> "TrackEstimate":
+        """The estimate in this drone's reported (GPS) frame, in which its own camera pose is given: person at
+        p + b, position covariance cov(p) + cov(b) + cov(p, b) + cov(b, p)."""
+        cov = self.covariance.copy()
+        C = np.zeros((3, 3)) if self.position_offset_cov_m2 is None else self.position_offset_cov_m2
+        cov[:3, :3] = cov[:3, :3] + self.offset_cov_m2 + C + C.T
+        cov[:3, 3:6] = cov[:3, 3:6] + (np.zeros((3, 3)) if self.velocity_offset_cov is None else self.velocity_offset_cov)
+        cov[3:6, :3] = cov[:3, 3:6].T
+        return dataclasses.replace(self, position_ned_m=self.position_ned_m + self.offset_ned_m, covariance=cov)
 
     def to_message(self, sender_id: str, seq: int = 0) -> TargetEstimate:
         """As a :class:`shared_msgs.messages.TargetEstimate` (header time = estimate time)."""
@@ -156,7 +179,7 @@ class CooperativeFilter:
         self.stats = FilterStats()
         self._gate_d2 = float(chi2.ppf(config.gate_probability, 3))
         self._order = 0
-        self._model_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._model_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self._clear()
 
     # ------------------------------------------------------------------ state
@@ -168,6 +191,46 @@ class CooperativeFilter:
         self._buffer: list[_Entry] = []
         self._last_seen_ns: dict[str, int] = {}
         self._t_last_accepted_ns: int | None = None
+        self._offset_ids: list[str] = [self.self_id]  #: whose offset each 3-block from x[6:] is
+        #: stationary variance (3,) of each offset: own = offset_sigma_m^2, a teammate's = the camera position
+        #: variance it reports with its detections (its positioning grade), else offset_sigma_m^2
+        self._offset_var: list[np.ndarray] = [np.full(3, self.cfg.offset_sigma_m**2)]
+
+    @property
+    def offset_ids(self) -> list[str]:
+        """The drones whose position offsets are states, in state order (self first)."""
+        return list(self._offset_ids)
+
+    def _offset_index(self, m: PositionMeasurement) -> int | None:
+        """State index of m's sender's offset block (adding the block for a new teammate); None = not a state."""
+        if not self.cfg.estimate_offset:
+            return None
+        if m.source_id == self.self_id:
+            return 6
+        if not self.cfg.fleet_offsets:
+            return None
+        if m.source_id not in self._offset_ids:
+            self._offset_ids.append(m.source_id)
+            var = np.full(3, self.cfg.offset_sigma_m**2)
+            c = m.camera_position_cov_m2
+            if c is not None and np.all(np.isfinite(np.diag(c))) and np.all(np.diag(c) > 0):
+                var = np.diag(c).astype(float).copy()
+            self._offset_var.append(var)
+        return 6 + 3 * self._offset_ids.index(m.source_id)
+
+    def _offset_var_vec(self, n: int) -> np.ndarray:
+        return np.concatenate(self._offset_var)[: n - 6]
+
+    def _padded(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x, P grown to the current number of offset states (a new teammate's offset: its prior, independent)."""
+        n = 6 + 3 * len(self._offset_ids)
+        if len(x) == n:
+            return x, P
+        x2 = np.zeros(n)
+        x2[: len(x)] = x
+        P2 = np.diag(np.concatenate([np.zeros(6), self._offset_var_vec(n)]))
+        P2[: len(x), : len(x)] = P
+        return x2, P2
 
     @property
     def initialised(self) -> bool:
@@ -175,7 +238,8 @@ class CooperativeFilter:
 
     @property
     def state(self) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """(x (9,), P (9, 9), t_ns) after the newest processed measurement, or None."""
+        """(x (n,), P (n, n), t_ns) after the newest processed measurement, or None; n = 6 + 3 x offsets
+        (:attr:`offset_ids`), own offset at x[6:9]."""
         if self._x is None:
             return None
         return self._x.copy(), self._P.copy(), int(self._t_ns)
@@ -185,12 +249,15 @@ class CooperativeFilter:
         self._clear()
 
     # ------------------------------------------------------------------ model
-    def _transition(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """(F (9, 9), Q (9, 9)) for a step of dt_s seconds (cached per microsecond)."""
-        key = int(round(dt_s * 1e6))
+    def _transition(self, dt_s: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(F (n, n), Q (n, n)) for a step of dt_s seconds, n = 6 + 3 x offsets (cached per microsecond)."""
+        key = (int(round(dt_s * 1e6)), n)
         hit = self._model_cache.get(key)
         if hit is not None:
-            return hit
+            F, Q, eb = hit
+            Q = Q.copy()
+            Q[6:, 6:] = np.diag(self._offset_var_vec(n) * (1.0 - eb * eb))
+            return F, Q
         c = self.cfg
         tv, tb = c.velocity_tau_s, c.offset_tau_s
         # per axis: p' = v + w_p, v' = -v / tv + w_v, E[w_v w_v] = q = 2 sigma^2 / tv (exact discretisation)
@@ -202,29 +269,32 @@ class CooperativeFilter:
         q_pv = q / (2.0 * a**2) * (1.0 - e) ** 2
         q_vv = q / (2.0 * a) * (1.0 - e * e)
         Qd = np.array([[q_pp, q_pv], [q_pv, q_vv]])
-        F = np.zeros((9, 9))
-        Q = np.zeros((9, 9))
+        F = np.zeros((n, n))
+        Q = np.zeros((n, n))
         F[:6, :6] = np.kron(Phi, I3)
         Q[:6, :6] = np.kron(Qd, I3)
         eb = np.exp(-dt_s / tb)
-        F[6:, 6:] = eb * I3
-        Q[6:, 6:] = c.offset_sigma_m**2 * (1.0 - eb * eb) * I3
+        F[6:, 6:] = eb * np.eye(n - 6)
         if len(self._model_cache) > 4096:
             self._model_cache.clear()
-        self._model_cache[key] = (F, Q)
+        self._model_cache[key] = (F, Q, eb)
+        Q = Q.copy()
+        Q[6:, 6:] = np.diag(self._offset_var_vec(n) * (1.0 - eb * eb))
         return F, Q
 
     def _predict(self, x: np.ndarray, P: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         if dt_s <= 0:
             return x, P
-        F, Q = self._transition(dt_s)
+        F, Q = self._transition(dt_s, len(x))
         return F @ x, F @ P @ F.T + Q
 
-    def _H_R(self, m: PositionMeasurement) -> tuple[np.ndarray, np.ndarray]:
-        H = np.zeros((3, 9))
+    def _H_R(self, m: PositionMeasurement, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Measurement matrix (3, n) and noise (3, 3) of m; the offset block must exist (see _offset_index)."""
+        H = np.zeros((3, n))
         H[:, :3] = I3
-        if m.source_id == self.self_id and self.cfg.estimate_offset:
-            H[:, 6:] = I3
+        k = self._offset_index(m)
+        if k is not None:
+            H[:, k : k + 3] = I3
             R = m.cov_no_cam_position_m2 + self.cfg.self_residual_position_var_m2 * I3
         else:
             R = m.cov_m2
@@ -232,14 +302,16 @@ class CooperativeFilter:
 
     def _init_from(self, m: PositionMeasurement) -> tuple[np.ndarray, np.ndarray]:
         c = self.cfg
-        x = np.zeros(9)
+        self._offset_index(m)
+        n = 6 + 3 * len(self._offset_ids)
+        x = np.zeros(n)
         x[:3] = m.position_ned_m
-        P = np.zeros((9, 9))
+        P = np.zeros((n, n))
         P[:3, :3] = c.init_position_var_m2 * I3
         vv = c.velocity_sigma_m_s**2 if c.init_velocity_var_m2_s2 is None else c.init_velocity_var_m2_s2
         P[3:6, 3:6] = vv * I3
-        P[6:, 6:] = c.offset_sigma_m**2 * I3
-        H, R = self._H_R(m)
+        P[6:, 6:] = np.diag(self._offset_var_vec(n))
+        H, R = self._H_R(m, n)
         return self._kalman(x, P, H, R, m.position_ned_m)[:2]
 
     @staticmethod
@@ -272,10 +344,11 @@ class CooperativeFilter:
             self._consec_rejections = 0
             e.accepted = True
             return
-        x, P = self._predict(self._x, self._P, (e.t_ns - self._t_ns) * NS)
+        self._offset_index(e.meas[0])  # a new teammate's offset block exists from here on
+        x, P = self._predict(*self._padded(self._x, self._P), (e.t_ns - self._t_ns) * NS)
         best = None
         for m in e.meas:
-            H, R = self._H_R(m)
+            H, R = self._H_R(m, len(x))
             try:
                 xn, Pn, d2 = self._kalman(x, P, H, R, m.position_ned_m)
             except np.linalg.LinAlgError:
@@ -381,8 +454,10 @@ class CooperativeFilter:
             position_ned_m=x[:3].copy(),
             velocity_ned_m_s=x[3:6].copy(),
             covariance=P[:6, :6].copy(),
-            offset_ned_m=x[6:].copy(),
-            offset_cov_m2=P[6:, 6:].copy(),
+            offset_ned_m=x[6:9].copy(),
+            offset_cov_m2=P[6:9, 6:9].copy(),
+            position_offset_cov_m2=P[:3, 6:9].copy(),
+            velocity_offset_cov=P[3:6, 6:9].copy(),
             status=status,
             num_sources=len(self.sources(t)),
             t_last_measurement_ns=int(self._t_last_accepted_ns),

@@ -127,6 +127,8 @@ class PositionMeasurement:
     camera_position_ned_m: np.ndarray
     mode: MeasurementMode
     score: float = 1.0
+    #: (3, 3) the camera position covariance the measurement was made with (the sender's positioning grade)
+    camera_position_cov_m2: np.ndarray | None = None
 
     def is_finite(self) -> bool:
         return bool(
@@ -358,6 +360,7 @@ def measurement_from_box(
         camera_position_ned_m=c0.copy(),
         mode=mode,
         score=score,
+        camera_position_cov_m2=pose_cov[:3, :3].copy(),
     )
 
 

@@ -23,7 +23,7 @@ def _info() -> CameraInfo:
                       height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px)
 
 
-def _detections(k: int, t_s: float, frame: int, rng, offset=np.zeros(3), px_sigma=2.0) -> tuple[Detections, np.ndarray]:
+def _detections(k: int, t_s: float, frame: int, rng, offset=np.zeros(3), px_sigma=2.0, pos_var_m2=0.25) -> tuple[Detections, np.ndarray]:
     cam_true = drone_positions(t_s, 3)[k]
     p = person_center(t_s)
     T_true = look_at_pose(cam_true, p)
@@ -38,7 +38,7 @@ def _detections(k: int, t_s: float, frame: int, rng, offset=np.zeros(3), px_sigm
         boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9,
                            var_x_min_px2=v, var_y_min_px2=v, var_x_max_px2=v, var_y_max_px2=v)],
         width_px=CAM.width_px, height_px=CAM.height_px, T_world_cam=tuple(T_rep.reshape(-1)),
-        T_world_cam_cov=tuple(np.diag([0.25] * 3 + [1e-5] * 3).reshape(-1)))
+        T_world_cam_cov=tuple(np.diag([pos_var_m2] * 3 + [1e-5] * 3).reshape(-1)))
     return det, box_true
 
 
@@ -52,7 +52,9 @@ def test_stage_fuses_teammates_estimates_own_offset_and_plans_rois():
     for i in range(int(dur * rate)):
         for k in range(3):
             t = i / rate + k / (3 * rate)
-            det, box_true = _detections(k, t, i, rng, offset if k == 0 else np.zeros(3))
+            # drone_0: GPS grade and biased; the teammates report (and have) RTK-grade poses, which pin the
+            # fleet's frame, so drone_0's whole bias is observable
+            det, box_true = _detections(k, t, i, rng, offset if k == 0 else np.zeros(3), pos_var_m2=1.0 if k == 0 else 0.05**2)
             if k == 0:
                 shared = stage.on_own_detections(det)
                 assert shared.header.sender_id == "drone_0" and shared.boxes == det.boxes

@@ -157,10 +157,10 @@ def test_config_validation():
 
 def test_process_model_decays():
     f = CooperativeFilter("d")
-    F, Q = f._transition(3.0)
+    F, Q = f._transition(3.0, 9)
     assert abs(F[3, 3] - np.exp(-1.0)) < 1e-12 and abs(F[6, 6] - np.exp(-0.1)) < 1e-12
     # long-horizon velocity variance tends to the stationary sigma^2
-    F, Q = f._transition(100.0)
+    F, Q = f._transition(100.0, 9)
     assert abs(Q[3, 3] - 1.5**2) < 1e-6 and abs(Q[6, 6] - 2.0**2) < 0.02
 
 
@@ -173,3 +173,35 @@ def test_sources_counted_beyond_buffer_span():
     t = late_src[-1].t_ns
     assert f.estimate(t).num_sources == 8  # drone_7 last seen ~2 s ago: still a source
     assert f.estimate(t + int(1.5e9)).num_sources == 7
+
+
+def test_fleet_offsets_put_every_drone_in_the_fleet_mean_frame():
+    """All three drones biased (same GPS grade, 1 m): with a per-teammate offset state every drone's filter
+    places the person in the fleet's mean frame (error = the mean bias, the unobservable common part), the
+    drones agree, and each own-offset estimate is its bias relative to that frame. AirCap's 9-state filter
+    (teammates' biases as white noise) puts each drone in the mean frame of its *teammates* instead."""
+    biases = {0: np.array([1.2, -0.4, 0.3]), 1: np.array([-0.9, 0.8, -0.2]), 2: np.array([0.3, 0.9, 0.4])}
+    mean_b = np.mean(list(biases.values()), axis=0)
+    meas = simulate(40.0, np.random.default_rng(11), offsets=biases, pos_var_m2=1.0)
+    t = meas[-1].t_ns
+    truth = person_center(t * 1e-9)
+    fleet = {k: run(CooperativeFilter(f"drone_{k}", TrackerConfig(offset_sigma_m=1.0)), meas).estimate(t) for k in biases}
+    solo = {k: run(CooperativeFilter(f"drone_{k}", TrackerConfig(offset_sigma_m=1.0, fleet_offsets=False)), meas).estimate(t) for k in biases}
+    for k, est in fleet.items():
+        # the person sits where the fleet-mean frame puts it: truth + mean bias
+        assert np.linalg.norm(est.position_ned_m - (truth + mean_b)) < 0.25, (k, est.position_ned_m - truth)
+        assert np.linalg.norm(est.offset_ned_m - (biases[k] - mean_b)) < 0.3, (k, est.offset_ned_m, biases[k] - mean_b)
+    spread = max(np.linalg.norm(fleet[a].position_ned_m - fleet[b].position_ned_m) for a in fleet for b in fleet)
+    spread_solo = max(np.linalg.norm(solo[a].position_ned_m - solo[b].position_ned_m) for a in solo for b in solo)
+    assert spread < 0.15 and spread_solo > 3 * spread, (spread, spread_solo)
+    assert len(run(CooperativeFilter("drone_0"), meas).state[0]) == 6 + 3 * 3
+
+
+def test_teammate_offset_prior_from_its_reported_grade():
+    """A teammate reporting an RTK-grade pose (5 cm) pins the frame: the biased GPS-grade drone's offset is
+    recovered in full (not shared with the good drones)."""
+    offset = np.array([1.5, -1.2, 0.6])
+    meas = simulate(30.0, np.random.default_rng(3), offsets={0: offset}, pos_var_m2={0: 4.0, 1: 0.05**2, 2: 0.05**2})
+    est = run(CooperativeFilter("drone_0"), meas).estimate(meas[-1].t_ns)
+    np.testing.assert_allclose(est.offset_ned_m, offset, atol=0.25)
+    assert np.linalg.norm(est.position_ned_m - person_center(meas[-1].t_ns * 1e-9)) < 0.25
