@@ -86,6 +86,9 @@ class SmootherConfig:
     gate_probability: float = 0.999  #: chi-square (3 dof) gate on the Mahalanobis residual
     huber_k: float = 3.0  #: Huber threshold on the Mahalanobis residual (sqrt of d^2), in sigmas
     max_iterations: int = 6  #: re-weighting passes after the first
+    #: first pass: after this many gate rejections in a row the track is taken to be wrong (e.g. started on a
+    #: false alarm) and re-initialised on the next frame, as onboard
+    reinit_after_rejections: int = 6
     output_rate_hz: float = 20.0  #: regular output grid between the first and last measurement (0 = none)
 
     def __post_init__(self):
@@ -349,6 +352,7 @@ def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2
     Fs = np.zeros((N, n, n))
     d2_out = np.full(len(frames), np.nan)
     x, P = x0, P0
+    rejections = reinits = 0
     for k in range(N):
         dt = 0.0 if k == 0 else (t_steps[k] - t_steps[k - 1]) * NS
         F, Q = model(dt)
@@ -360,6 +364,18 @@ def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2
         for j in frames_at[k]:
             fr = frames[j]
             if choice[j] == -2:  # first pass: the gated alternative nearest the prediction
+                if rejections >= cfg.reinit_after_rejections:
+                    # the track disagrees with everything for a while: forget the person's state, keep the offsets
+                    a = int(np.argmax([o.score for o in fr.alternatives]))
+                    x = x.copy()
+                    x[:3] = fr.alternatives[a].z_ned_m - fr.alternatives[a].J_offset @ x[6 + 3 * fr.drone: 9 + 3 * fr.drone]
+                    x[3:6] = 0.0
+                    P = P.copy()
+                    P[:6, :] = 0.0
+                    P[:, :6] = 0.0
+                    P[:6, :6] = P0[:6, :6]
+                    rejections = 0
+                    reinits += 1
                 best = None
                 for a in range(len(fr.alternatives)):
                     H, R, z = _frame_HR(fr, a, n, cfg)
@@ -369,6 +385,7 @@ def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2
                     if d2 <= gate_d2 and (best is None or d2 < best[1]):
                         best = (a, d2)
                 choice[j] = -1 if best is None else best[0]
+                rejections = rejections + 1 if best is None else 0
                 if best is not None:
                     d2_out[j] = best[1]
             if choice[j] < 0 or weight[j] <= 0:
@@ -392,6 +409,8 @@ def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2
         xs[k] = x_f[k] + C @ (xs[k + 1] - x_pred[k + 1])
         Pk = P_f[k] + C @ (Ps[k + 1] - Pp) @ C.T
         Ps[k] = 0.5 * (Pk + Pk.T)
+    if reinits:
+        log.info("smoother: first pass re-initialised the person track %d time(s)", reinits)
     return xs, Ps, x_f, d2_out
 
 

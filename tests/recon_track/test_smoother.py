@@ -157,3 +157,14 @@ def test_bad_input_errors(scene):
     obs = [Observation.from_measurement(m, IDS.index(m.source_id)) for m in scene.measurements[:50]]
     tr = smooth_track([nan, *obs], IDS)  # non-finite observations are dropped, not fatal
     assert np.all(np.isfinite(tr.position_ned_m))
+
+
+def test_blunders_at_the_start_do_not_capture_the_track(scene, smoothed):
+    obs = [Observation.from_measurement(m, IDS.index(m.source_id)) for m in scene.measurements]
+    for i in range(4):  # the first four images all see "the person" 8 m away (another person, a false alarm)
+        obs[i] = dataclasses.replace(obs[i], z_ned_m=obs[i].z_ned_m + np.array([8.0, 0.0, 0.0]))
+    tr = smooth_track(obs, IDS, SmootherConfig(offset_sigma_m=(1.0, 1.0, 0.5)))
+    assert np.all(tr.frame_choice[:4] == -1), tr.frame_choice[:6]
+    ts = tr.t_ns * 1e-9
+    keep = ts > 1.0
+    assert np.max(np.abs(tr.position_ned_m[keep] - smoothed.position_ned_m[keep])) < 0.1
