@@ -148,9 +148,24 @@ class TrackingStage:
             self.filter.add_frame(ms)
         return len(ms)
 
-    def on_own_detections(self, det: Detections) -> Detections | None:
-        """Fuse this drone's detections; returns the message to share (``roi_px`` = the ROI planned for it),
-        None when the message was malformed (ignored and counted; its good boxes, if any, are kept)."""
+    def plan_for(self, t_ns: int, T_world_cam) -> DetectorPlan | None:
+        """The detector's job for a frame captured at t_ns from T_world_cam ((16,) or (4, 4), this drone's
+        reported frame): the ROI of the filter's prediction, or a search; None before the camera info."""
+        if self.intrinsics is None or np.size(T_world_cam) != 16:
+            return None
+        est = self.filter.estimate(t_ns) if self.filter.initialised else None
+        if est is not None:
+            est = self.in_reported_frame(est)
+        T = np.asarray(T_world_cam, dtype=float).reshape(4, 4)
+        return plan_detection(est, self.intrinsics, T, int(t_ns), self.cfg.roi)
+
+    def on_own_detections(self, det: Detections, plan: DetectorPlan | None = None) -> Detections | None:
+        """Fuse this drone's detections; returns the message to share, None when the message was malformed
+        (ignored and counted; its good boxes, if any, are kept).
+
+        plan: the plan the detector ran with (:meth:`plan_for` before detection; the message's ``roi_px`` is
+        then the region it searched). None (a detector that does not take a region, e.g. the simulator's):
+        the plan is made here and ``roi_px`` of the shared message is the ROI planned for this frame."""
         det = self._sanitise(det)
         if det is None:
             return None
@@ -159,16 +174,14 @@ class TrackingStage:
             c = self.cfg
             cov = np.diag([c.camera_position_sigma_m**2] * 3 + [c.camera_rotation_sigma_rad**2] * 3)
             det = msgspec.structs.replace(det, T_world_cam_cov=tuple(float(v) for v in cov.reshape(-1)))
-        roi = (0.0, 0.0, 0.0, 0.0)
-        if self.intrinsics is not None and len(det.T_world_cam) == 16:
-            t = det.header.t_measurement_ns
-            est = self.filter.estimate(t) if self.filter.initialised else None
-            if est is not None:
-                est = self.in_reported_frame(est)
-            T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4)
-            self.last_plan = plan_detection(est, self.intrinsics, T, t, self.cfg.roi)
-            if self.last_plan.roi_px is not None:
-                roi = tuple(float(v) for v in self.last_plan.roi_px)
+        roi = tuple(det.roi_px) if plan is not None else (0.0, 0.0, 0.0, 0.0)
+        if plan is None:
+            plan = self.plan_for(det.header.t_measurement_ns, det.T_world_cam)
+            if plan is not None and plan.roi_px is not None:
+                roi = tuple(float(v) for v in plan.roi_px)
+        if plan is not None:
+            self.last_plan = plan
+            if plan.roi_px is not None:
                 self.counts["roi_planned"] += 1
         self.counts["own_measurements"] += self._fuse(det)
         self._log_offset()

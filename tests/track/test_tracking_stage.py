@@ -99,3 +99,25 @@ def test_box_in_roi_and_lost_time():
     # a 3 s hole: covered 1 s after the last estimate before it
     t = np.concatenate([np.arange(0, 4, 0.1), np.arange(7, 10, 0.1)])
     assert lost_time_s(t, 0.0, 10.0) == pytest.approx(7.0 - 3.9 - 1.0, abs=1e-6)
+
+
+def test_stage_plans_before_a_real_detector_and_keeps_the_searched_region():
+    """With a detector that takes the region (the ONNX one), the plan is made before detection
+    (plan_for at the frame's time and pose) and the shared message reports the region actually searched."""
+    import msgspec
+
+    rng = np.random.default_rng(4)
+    stage = TrackingStage("drone_0")
+    assert stage.plan_for(0, np.eye(4)) is None  # no camera info yet
+    stage.set_camera_info(_info())
+    for i in range(40):
+        for k in range(3):
+            det, _ = _detections(k, i / 4 + k / 12, i, rng)
+            (stage.on_own_detections if k == 0 else stage.on_teammate_detections)(det)
+    t = 10.0
+    det, box_true = _detections(0, t, 99, rng)
+    plan = stage.plan_for(int(t * 1e9), det.T_world_cam)
+    assert plan.mode == "roi" and not plan.search and box_in_roi(box_true, plan.roi_px)
+    searched = (plan.roi_px[0] - 3.0, plan.roi_px[1] - 3.0, plan.roi_px[2] + 6.0, plan.roi_px[3] + 6.0)  # clipped/rounded by the detector
+    shared = stage.on_own_detections(msgspec.structs.replace(det, roi_px=searched, mode="roi", detector="nanodet"), plan)
+    assert shared.roi_px == searched and stage.last_plan is plan
