@@ -1,7 +1,7 @@
 """The real person detector in the onboard loop: camera frame + the tracker's region of interest -> Detections.
 
-    worker = DetectionWorker(drone_id, PersonDetector(), deliver=lambda det: ...)  # deliver: called with each result
-    worker.submit(frame, plan)          # non-blocking; False (and counted) when the detector is still busy
+    worker = DetectionWorker(drone_id, PersonDetector(), deliver=lambda det, context: ...)  # called per result
+    worker.submit(frame, "roi", roi_xywh, context=plan)  # non-blocking; False (and counted) when still busy
     worker.close()
 
 The detector (NanoDet on onnxruntime, :mod:`onboard.detector.detector`) takes ~20-90 ms per frame on one
@@ -91,12 +91,12 @@ def detections_from_frame(
 class DetectionWorker:
     """The detector on one worker thread, newest frame wins (see the module doc).
 
-    deliver(det) is called on the worker thread with each result; an agent wraps it to hop back to its event
-    loop. Counters: ``submitted``, ``dropped_busy`` (arrived while busy), ``failed`` (bad frame, model error),
+    deliver(det, context) is called on the worker thread with each result and the ``context`` given to
+    :meth:`submit` (e.g. the detector plan); an agent wraps it to hop back to its event loop. Counters: ``submitted``, ``dropped_busy`` (arrived while busy), ``failed`` (bad frame, model error),
     ``done``; ``infer_ms`` keeps the last 1000 detection times.
     """
 
-    def __init__(self, drone_id: str, detector: PersonDetector, deliver: Callable[[Detections], None]):
+    def __init__(self, drone_id: str, detector: PersonDetector, deliver: Callable[[Detections, object], None]):
         self.drone_id = drone_id
         self.detector = detector
         self.deliver = deliver
@@ -107,7 +107,8 @@ class DetectionWorker:
         self.infer_ms: list[float] = []
         self._closed = False
 
-    def submit(self, frame: CameraFrame, mode: str = "roi", roi_xywh: tuple[float, float, float, float] | None = None) -> bool:
+    def submit(self, frame: CameraFrame, mode: str = "roi", roi_xywh: tuple[float, float, float, float] | None = None,
+               context: object = None) -> bool:
         """Start detection on ``frame`` unless busy (then the frame is dropped: False)."""
         if self._closed:
             return False
@@ -121,13 +122,13 @@ class DetectionWorker:
         self.counts["submitted"] += 1
         self._seq += 1
         try:
-            self._pool.submit(self._run, frame, mode, roi_xywh, self._seq)
+            self._pool.submit(self._run, frame, mode, roi_xywh, self._seq, context)
         except RuntimeError:  # pool shut down meanwhile
             self._busy.release()
             return False
         return True
 
-    def _run(self, frame: CameraFrame, mode: str, roi_xywh, seq: int) -> None:
+    def _run(self, frame: CameraFrame, mode: str, roi_xywh, seq: int, context: object) -> None:
         try:
             t0 = time.perf_counter()
             det = detections_from_frame(self.detector, frame, mode, roi_xywh, sender_id=self.drone_id, seq=seq)
@@ -141,7 +142,7 @@ class DetectionWorker:
             self._busy.release()
         self.counts["done"] += 1
         try:
-            self.deliver(det)
+            self.deliver(det, context)
         except Exception:
             log.exception("%s: delivering detections failed", self.drone_id)
 

@@ -84,7 +84,8 @@ def test_worker_drops_frames_while_busy_and_delivers_results(detector, rendered)
     got, done = [], threading.Event()
     gate = threading.Event()
 
-    def deliver(det):
+    def deliver(det, context):
+        assert context == "plan-7"
         got.append(det)
         done.set()
 
@@ -93,7 +94,7 @@ def test_worker_drops_frames_while_busy_and_delivers_results(detector, rendered)
         # hold the worker busy on a first job so that the next submissions are dropped, not queued
         w._pool.submit(gate.wait)
         roi = (g[0] - 80, g[1] - 80, g[2] - g[0] + 160, g[3] - g[1] + 160)
-        assert w.submit(frame, "roi", roi)
+        assert w.submit(frame, "roi", roi, context="plan-7")
         assert not w.submit(frame, "roi", roi) and not w.submit(frame, "roi", roi)
         gate.set()
         assert done.wait(30.0)
@@ -101,7 +102,7 @@ def test_worker_drops_frames_while_busy_and_delivers_results(detector, rendered)
         assert got[0].boxes
         # idle again: the next frame is taken; a frame without a pose is refused and counted
         done.clear()
-        assert w.submit(frame, "roi", roi) and done.wait(30.0)
+        assert w.submit(frame, "roi", roi, context="plan-7") and done.wait(30.0)
         import msgspec
 
         assert not w.submit(msgspec.structs.replace(frame, T_world_cam=()))
