@@ -485,7 +485,7 @@ def _fault_figures(stats: dict) -> dict:
     """Failsafe and fault counters from an agent's ``<drone>.track.json`` (absent when the agent did not write
     it, e.g. killed): ``failsafe_events`` (decision changes), ``failsafe_counts`` (per action),
     ``malformed_detections`` (ignored: refused by the codec, by the tracking stage, non-finite),
-    ``fault_dropped`` / ``fault_delayed`` (simulated network faults on receipt), the filter's
+    ``fault_judged`` / ``fault_dropped`` / ``fault_delayed`` (teammate messages the simulated network fault layer applied to / dropped / delayed), the filter's
     ``filter_refiltered`` (late measurements re-filtered), ``filter_rejected_gate``, ``filter_reinitialisations``."""
     if not stats:
         return {"agent_stats": False}
@@ -496,6 +496,7 @@ def _fault_figures(stats: dict) -> dict:
         "failsafe_events": len(stats.get("failsafe_events", [])),
         "failsafe_counts": dict(stats.get("failsafe_counts", {})),
         "malformed_detections": int(stats.get("malformed_detections", {}).get("total", 0)),
+        "fault_judged": int(tp.get("fault_judged", 0)),
         "fault_dropped": int(tp.get("fault_dropped", 0)),
         "fault_delayed": int(tp.get("fault_delayed", 0)),
         "filter_refiltered": int(fs.get("refiltered", 0)),

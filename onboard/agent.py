@@ -522,7 +522,7 @@ class Agent:
 
     def transport_counts(self) -> dict:
         """Receive counters over all subscriptions (with the simulated fault layer's drops and delays)."""
-        out = {"received": 0, "malformed": 0, "fault_dropped": 0, "fault_delayed": 0}
+        out = {"received": 0, "malformed": 0, "fault_judged": 0, "fault_dropped": 0, "fault_delayed": 0}
         for s in self._subs:
             st = getattr(s, "stats", None)
             for k in out:

@@ -217,7 +217,8 @@ class TopicStats:
     malformed: int = 0  #: refused by the codec (malformed, unknown type, wrong version, wrong type, NaN)
     callback_errors: int = 0  #: the user callback raised
     dropped: int = 0  #: async queue full: oldest message dropped
-    fault_dropped: int = 0  #: dropped by the simulated fault layer (:class:`FaultConfig`)
+    fault_judged: int = 0  #: other drones' messages the simulated fault layer applied to (:class:`FaultConfig`)
+    fault_dropped: int = 0  #: dropped by the simulated fault layer
     fault_delayed: int = 0  #: delivered late by the simulated fault layer
     last_error: str = ""
 
@@ -395,7 +396,18 @@ class _FaultInjector:
         self._drop = frozenset(cfg.drop_topics)
         self._delay = frozenset(cfg.delay_topics)
 
+    def applies(self, key: str) -> bool:
+        """Whether ``key`` is another drone's key on a topic this layer drops or delays."""
+        try:
+            _, node, topic = _keys.parse_key(key)
+        except ValueError:
+            return False
+        if node == self.node_id or node in (_keys.GCS, _keys.SIM):
+            return False
+        return (topic in self._drop and self.cfg.drop_prob > 0.0) or (topic in self._delay and self.cfg.delay_s > 0.0)
+
     def judge(self, key: str) -> float | None:
+        """None: drop; 0.0: deliver now; > 0: deliver that many seconds late."""
         try:
             _, node, topic = _keys.parse_key(key)
         except ValueError:
@@ -669,7 +681,8 @@ class Transport:
                     log.warning("%s: dropped input #%d: %s", where, stats.malformed, stats.last_error)
                 return
             fault = self._fault
-            if fault is not None:
+            if fault is not None and fault.applies(key):
+                stats.fault_judged += 1
                 delay_s = fault.judge(key)
                 if delay_s is None:
                     stats.fault_dropped += 1

@@ -97,8 +97,8 @@ class FaultsDemoConfig:
     drop_prob: float = 0.0
     #: extra delay (s) of the teammates' detections at every agent (``transport.fault.delay_s``)
     detection_delay_s: float = 0.0
-    #: SIGKILL this drone's agent (e.g. "drone_3") at ``kill_agent_at_s``; the simulator then lands its vehicle
-    #: on offboard loss (``failsafe.offboard_loss_action="land"`` unless sim_set says otherwise)
+    #: SIGKILL this drone's agent (e.g. "drone_3") at ``kill_agent_at_s``; its vehicle then lands on offboard
+    #: loss (its COM_OBL_RC_ACT is set to land just before)
     kill_agent: str = ""
     kill_agent_at_s: float = 10.0
     #: a sudden jump of this drone's position estimate by ``gps_jump_ned_m`` at ``gps_jump_at_s``
@@ -286,8 +286,6 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if (cfg.track.rtk if track else cfg.rtk):
         sim_set += ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
     fc = cfg.faults
-    if fc.kill_agent:
-        sim_set.append('failsafe.offboard_loss_action="land"')  # PX4 COM_OBL_RC_ACT=land for the orphaned vehicle
     sim_set += cfg.sim_set
     save_config(cfg, out / "config.toml")
     py = [sys.executable, "-m", "skycap.cli"]
@@ -311,6 +309,10 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         if fc.gps_jump_drone:
             sim_cmd += ["--gps-jump", ",".join([str(ids.index(fc.gps_jump_drone)), str(fc.gps_jump_at_s),
                                                 *map(str, fc.gps_jump_ned_m)])]
+        if fc.kill_agent:
+            # the orphaned vehicle lands on offboard loss (PX4 COM_OBL_RC_ACT = 4), set just before its agent dies
+            # (earlier, a load-induced setpoint stall would land it too; the fleet otherwise holds and resumes)
+            sim_cmd += ["--param-at", f"{ids.index(fc.kill_agent)},{max(0.0, fc.kill_agent_at_s - 0.2)},COM_OBL_RC_ACT,4"]
         procs.start("sim", sim_cmd)
         if cfg.cameras:
             cam = _camera_command()
@@ -550,6 +552,9 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gps-jump", default=None, metavar="INDEX,AT_S,N,E,D",
                     help="fault injection: vehicle INDEX's position estimate jumps by (N, E, D) m AT_S seconds after "
                          "the start time of the first orbit plan seen on the fleet's plan key")
+    ap.add_argument("--param-at", action="append", default=[], metavar="INDEX,AT_S,NAME,VALUE",
+                    help="set vehicle INDEX's autopilot parameter NAME to VALUE AT_S seconds after the start time of "
+                         "the first orbit plan (e.g. COM_OBL_RC_ACT=4: land on offboard loss); repeatable")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args(argv)
     gimbal_rad = math.radians(args.gimbal_pitch_deg) if args.gimbal_pitch_deg is not None else 0.0
@@ -582,28 +587,7 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
         bus.publish(key, SimTruth(header=SimTruth.make_header(keys.SIM, t_ns), vehicles=vehicles, **extra))
 
     world.add_tick_hook(publish_truth, rate_hz=args.truth_hz)
-    if args.gps_jump:
-        from shared_msgs import OrbitPlan
-
-        try:
-            idx_s, at_s, *off = args.gps_jump.split(",")
-            idx, at_s, off = int(idx_s), float(at_s), [float(v) for v in off]
-            if len(off) != 3 or not 0 <= idx < len(world.vehicles):
-                raise ValueError
-        except ValueError:
-            raise SkycapError(f"--gps-jump {args.gps_jump!r}: give INDEX,AT_S,N,E,D with INDEX < "
-                              f"{len(world.vehicles)}") from None
-        scheduled: list[int] = []
-
-        def on_plan(rx) -> None:  # Zenoh thread: schedule once, in simulation time
-            if scheduled:
-                return
-            scheduled.append(1)
-            at_sim_s = world.t_s + (rx.msg.start_time_ns * 1e-9 + at_s - time.time())
-            world.vehicles[idx].schedule_gps_jump(at_sim_s, off)
-            log.warning("FAULT: GPS jump of vehicle %d by %s m scheduled at sim t=%.1f s", idx, off, at_sim_s)
-
-        bus.subscribe(keys.gcs_key(args.fleet, keys.PLAN), on_plan, OrbitPlan)
+    _schedule_faults(world, bus, args)
 
     async def main() -> None:
         stop = asyncio.Event()
@@ -618,6 +602,55 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
         bus.close()
     log.info("simulator node stopped after %.1f s (%d overruns)", world.t_s, world.overruns)
     return 0
+
+
+def _schedule_faults(world, bus, args) -> None:
+    """The sim node's fault schedule (``--gps-jump``, ``--param-at``), relative to the start time of the first
+    orbit plan seen on the fleet's plan key (converted to simulation time when it arrives)."""
+    from shared_msgs import OrbitPlan, keys
+
+    n = len(world.vehicles)
+    jump = None
+    if args.gps_jump:
+        try:
+            idx_s, at_s, *off = args.gps_jump.split(",")
+            jump = (int(idx_s), float(at_s), [float(v) for v in off])
+            if len(jump[2]) != 3 or not 0 <= jump[0] < n:
+                raise ValueError
+        except ValueError:
+            raise SkycapError(f"--gps-jump {args.gps_jump!r}: give INDEX,AT_S,N,E,D with INDEX < {n}") from None
+    params = []
+    for text in args.param_at:
+        try:
+            idx_s, at_s, name, value = text.split(",")
+            params.append((int(idx_s), float(at_s), name.strip(), float(value)))
+            if not 0 <= params[-1][0] < n or world.vehicles[0].params.get(name.strip()) is None:
+                raise ValueError
+        except ValueError:
+            raise SkycapError(f"--param-at {text!r}: give INDEX,AT_S,NAME,VALUE with INDEX < {n} and a known "
+                              "parameter name") from None
+    if jump is None and not params:
+        return
+    pending: list[tuple[float, int, str, float]] = []
+
+    def on_plan(rx) -> None:  # Zenoh thread: schedule once, in simulation time
+        if pending or getattr(on_plan, "done", False):
+            return
+        on_plan.done = True
+        t0_sim = world.t_s + (rx.msg.start_time_ns * 1e-9 - time.time())
+        if jump is not None:
+            world.vehicles[jump[0]].schedule_gps_jump(t0_sim + jump[1], jump[2])
+            log.warning("FAULT: GPS jump of vehicle %d by %s m scheduled at sim t=%.1f s", jump[0], jump[2], t0_sim + jump[1])
+        pending.extend(sorted((t0_sim + at, i, name, v) for i, at, name, v in params))
+
+    def apply_params(t_ns: int, truths) -> None:  # simulation loop
+        while pending and pending[0][0] <= world.t_s:
+            _, i, name, v = pending.pop(0)
+            world.vehicles[i].params.set(name, v)
+            log.warning("FAULT schedule: vehicle %d parameter %s = %s at sim t=%.1f s", i, name, v, world.t_s)
+
+    world.add_tick_hook(apply_params, rate_hz=50.0)
+    bus.subscribe(keys.gcs_key(args.fleet, keys.PLAN), on_plan, OrbitPlan)
 
 
 if __name__ == "__main__":

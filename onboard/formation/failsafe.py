@@ -184,7 +184,9 @@ class FailsafeLog:
     """Every change of the failsafe decision (its action or the set of drones present), with counters.
 
     ``events``: list of dicts (``t_s``, ``action``, ``reasons``, ``present``, ``slot_angle_rad``, ``source``);
-    ``counts``: changes into each action; :meth:`note` returns the event when the decision changed (else None).
+    ``counts``: changes into each action (``"<source>:<action>"`` for other sources, e.g. ``"mission:land"`` for
+    the agent's ground-station-loss failsafe); :meth:`note` returns the event when the decision changed (else
+    None).
     """
 
     def __init__(self, self_id: str):
@@ -208,5 +210,6 @@ class FailsafeLog:
         ev = {"t_s": round(float(t_s), 3), "action": str(action), "reasons": list(reasons), "present": list(present),
               "slot_angle_rad": None if slot_angle_rad is None else round(float(slot_angle_rad), 4), "source": source}
         self.events.append(ev)
-        self.counts[ev["action"]] = self.counts.get(ev["action"], 0) + 1
+        key = ev["action"] if source == "formation" else f"{source}:{ev['action']}"
+        self.counts[key] = self.counts.get(key, 0) + 1
         return ev

@@ -67,7 +67,7 @@ def test_drops_a_share_of_other_drones_messages_only():
         own = [r for r in got if "/drone_1/" in r.key]
         mate = [r for r in got if "/drone_2/" in r.key]
         assert len(own) == n
-        assert len(mate) + sub.stats.fault_dropped == n
+        assert len(mate) + sub.stats.fault_dropped == n and sub.stats.fault_judged == n
         assert 0.2 * n < sub.stats.fault_dropped < 0.4 * n  # 30 % +- ~7 sigma
         assert rx.stats()[next(k for k in rx.stats() if k.startswith(keys.all_drones_key("f", keys.STATE)))]["fault_dropped"] \
             == sub.stats.fault_dropped

@@ -65,7 +65,7 @@ def test_log_keeps_changes_only_and_counts():
     ev = log.note(105.0, sup.update(inputs(t_s=105.0, t_person_seen_s=104.9, teammates_last_seen_s={"d1": 104.9})))
     assert ev["action"] == "respace" and ev["present"] == ["d0", "d1"] and ev["slot_angle_rad"] is not None
     log.add(106.0, "land", ["ground-station heartbeat lost"], source="mission")
-    assert log.counts == {"hold_and_search": 1, "respace": 1, "land": 1} and len(log.events) == 3
+    assert log.counts == {"hold_and_search": 1, "respace": 1, "mission:land": 1} and len(log.events) == 3
 
 
 def test_source_hold_search_and_shared_hold_plan():

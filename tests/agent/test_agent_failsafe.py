@@ -1,0 +1,100 @@
+"""The agent's track-mode failsafe wiring, in process (fake autopilot and bus, real tracking stage, formation
+MPC and supervisor): person lost -> hold and search, found -> resume; teammate lost -> re-space (new slot
+angle); low battery -> return through the mission and the autopilot; every change logged and in the stats."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from types import SimpleNamespace
+
+import numpy as np
+
+from groundstation.fleet import make_orbit_plan
+from onboard.agent import Agent
+from onboard.config import AgentConfig
+from onboard.mission import State
+from shared_msgs import VehicleState, encode, keys
+
+
+class FakeAutopilot:
+    def __init__(self):
+        self.telemetry = {"battery_frac": 0.9, "armed": True, "in_air": True, "flight_mode": "OFFBOARD",
+                          "landed_state": "in_air", "vel": (0.0, 0.0, 0.0), "pos": (8.0, 0.0, -6.0), "health_ok": True}
+        self.on_state = None
+        self.calls: list[str] = []
+
+    async def return_to_launch(self):
+        self.calls.append("return")
+
+    async def land(self):
+        self.calls.append("land")
+
+    async def hold(self):
+        self.calls.append("hold")
+
+
+class FakeBus:
+    def publish(self, key, msg, latch=False):
+        return encode(msg)
+
+
+def _state(d: str, pos) -> SimpleNamespace:
+    msg = VehicleState(header=VehicleState.make_header(d), position_ned_m=tuple(pos), velocity_ned_m_s=(0.0, 0.0, 0.0),
+                       q_world_body=(1.0, 0.0, 0.0, 0.0))
+    return SimpleNamespace(key=keys.drone_key("f", d, keys.STATE), msg=msg)
+
+
+def test_agent_acts_on_formation_failsafes():
+    async def main():
+        ap = FakeAutopilot()
+        agent = Agent(AgentConfig(drone_id="drone_1", fleet="f", mode="track"), FakeBus(), ap)
+        ids = ["drone_1", "drone_2", "drone_3"]
+        phases = {"drone_1": 0.0, "drone_2": 2 * math.pi / 3, "drone_3": -2 * math.pi / 3}
+        plan = make_orbit_plan(ids, (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1, phase_offset_rad=phases)
+        agent.mission.set_plan(plan)
+        agent.mission.state = State.ORBIT
+        src = agent._formation_source(plan)
+        agent.source = src
+        pos = {d: (8.0 * math.cos(a), 8.0 * math.sin(a), -6.0) for d, a in phases.items()}
+        own = np.asarray(pos["drone_1"])
+        t = time.time()
+
+        def step(dt):
+            for d in ("drone_2", "drone_3"):
+                if d in alive:
+                    agent.on_neighbour_state(_state(d, pos[d]))
+            agent._supervise_formation(src, t + dt, own)
+            src.update(t + dt, own, np.zeros(3), 0.0)
+
+        alive = {"drone_2", "drone_3"}
+        step(0.0)  # the start: nothing seen yet, within the acquisition grace time
+        assert not src.holding and abs(src.slot_angle_rad) < 1e-9 and agent.failsafe_log.events == []
+        agent._t_person_seen_s = time.time() - 5.0  # the person was last seen 5 s ago
+        step(0.0)
+        assert src.holding and src.search_yaw_rate_rad_s > 0
+        np.testing.assert_allclose(src.hold_position_ned_m, own)
+        assert agent.failsafe_log.events[-1]["action"] == "hold_and_search"
+        agent._t_person_seen_s = time.time()  # found again
+        step(0.0)
+        assert not src.holding and agent.failsafe_log.events[-1]["action"] == "continue"
+        # drone_3 falls silent: after teammate_lost_after_s the others re-space
+        alive = {"drone_2"}
+        agent.teammate_seen_s["drone_3"] = time.time() - 3.0
+        agent._t_person_seen_s = time.time()
+        step(0.0)
+        ev = agent.failsafe_log.events[-1]
+        assert ev["action"] == "respace" and ev["present"] == ["drone_1", "drone_2"]
+        assert abs(src.slot_angle_rad) > math.radians(10) and ev["slot_angle_rad"] == round(src.slot_angle_rad, 4)
+        # low battery: return through the mission and the autopilot
+        ap.telemetry["battery_frac"] = 0.2
+        step(0.0)
+        await asyncio.sleep(0.05)
+        assert agent.mission.state == State.RETURNING and ap.calls == ["return"] and agent.source is None
+        st = agent.tracking_stats()
+        assert st["failsafe_counts"]["hold_and_search"] == 1 and st["failsafe_counts"]["respace"] == 1
+        assert st["failsafe_counts"]["return"] == 1 and st["failsafe_counts"]["mission:return"] == 1
+        assert any("formation failsafe: respace" in w for w in agent.warnings)
+
+    asyncio.run(main())
