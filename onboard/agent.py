@@ -16,6 +16,15 @@ Parts (so that perception, tracking and formation control plug in without rewrit
   what they return is published and recorded (a detector, a keypoint model, a target tracker).
 * ``autopilot`` -- the thin MAVSDK adapter; ``bus`` -- the Zenoh transport; ``recorder`` -- the MCAP writer.
 
+Track mode (``mode = "track"``): the tracking stage fuses own and teammates' detections, the formation MPC
+flies around the fused person estimate, and before every MPC step the formation failsafes
+(:class:`onboard.formation.failsafe.FormationSupervisor`, configured by ``track.failsafe``) decide: re-space
+when a teammate falls silent (no state or plan for ``teammate_lost_after_s``) or joins, brake and hold when a
+separation / geofence breach is predicted or the MPC keeps falling back, hold and turn to search when the
+person is lost, return / land on low battery (through the mission, like the ground-station-loss failsafe).
+Every change is logged, counted, kept in the health warnings and written to ``<drone>.track.json``
+(``failsafe_events``, ``failsafe_counts``) with the malformed-detection and network-fault counters.
+
 Loops (asyncio, one thread + MAVSDK's and Zenoh's own): the control loop (``rates.setpoint_hz``), the
 supervisor (10 Hz: vehicle events, failsafes, health heartbeat) and the telemetry callbacks (50 Hz:
 record state, publish it at ``rates.state_publish_hz``).
