@@ -10,11 +10,34 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_tracking_stage import _detections, _info  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tracking"))
+from tracking_scene import CAM, drone_positions, look_at_pose, person_center  # noqa: E402
 
+from onboard.tracking.measurement import box_from_person
 from onboard.tracking.stage import TrackingStage, box_problem, detection_problem
-from shared_msgs.messages import BoundingBox
+from shared_msgs.messages import BoundingBox, CameraInfo, Detections
+
+
+def _info() -> CameraInfo:
+    return CameraInfo(header=CameraInfo.make_header("drone_0", 0), camera_id="cam", width_px=CAM.width_px,
+                      height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px)
+
+
+def _detections(k: int, t_s: float, frame: int, rng, px_sigma=2.0) -> tuple[Detections, np.ndarray]:
+    """Drone k's detection of the walking person at t_s (exact poses, box noise px_sigma)."""
+    p = person_center(t_s)
+    T = look_at_pose(drone_positions(t_s, 3)[k], p)
+    box_true, _ = box_from_person(p, CAM, T)
+    box = box_true + rng.normal(0, px_sigma, 4)
+    v = px_sigma**2
+    det = Detections(
+        header=Detections.make_header(f"drone_{k}", int(t_s * 1e9), frame), camera_id="cam", frame_index=frame,
+        detector="simulated", mode="simulated",
+        boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9,
+                           var_x_min_px2=v, var_y_min_px2=v, var_x_max_px2=v, var_y_max_px2=v)],
+        width_px=CAM.width_px, height_px=CAM.height_px, T_world_cam=tuple(T.reshape(-1)),
+        T_world_cam_cov=tuple(np.diag([0.25] * 3 + [1e-5] * 3).reshape(-1)))
+    return det, box_true
 from simulator.config import SimConfig
 from simulator.vehicle.autopilot import SimVehicle
 
