@@ -64,6 +64,9 @@ def add_reconstruct_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--mv-fit", choices=("product", "paper"), default="product", help="multiview fitting method (default product)")
     g.add_argument("--mv-device", default="cpu", help="torch device for the multiview fit (default cpu)")
     g.add_argument("--mv-out", type=Path, default=None, help="multiview output folder (default FLIGHT_DIR/reconstruction)")
+    g.add_argument("--mv-use-refined-poses", action="store_true",
+                   help="drone positions minus the offsets of FLIGHT_DIR/refined_track.npz (run `skycap refine` first); "
+                        "off by default: it helps on GPS-grade flights' pose, not on RTK-grade ones (reconstruction/track/README.md)")
 
 
 def reconstruct_flight(flight_dir: Path, args: argparse.Namespace) -> int:
