@@ -141,7 +141,7 @@ def add_reconstruct_args(parser: argparse.ArgumentParser) -> None:
                         "with the drone's camera poses (default)")  # fmt: skip
     g.add_argument("--mono-body-radius-m", type=float, default=None,
                    help="assumed RMS joint radius of the person, m (default: the dictionary mean pose's; "
-                        "perspective: method.perspective.body_rms_radius_m)")  # fmt: skip
+                        "perspective: scales the adult bone-length prior by radius / 0.55 m)")  # fmt: skip
 
 
 def reconstruct_flight(flight_dir: Path, args: argparse.Namespace) -> int:

@@ -136,7 +136,7 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
     t0 = time.perf_counter()
     dt_s = float(np.median(np.diff(view.t_ns))) * 1e-9 if len(view.t_ns) > 1 else 1.0 / cfg.setup.fps
     res = reconstruct_monocular(view.W_px, view.confidence, d, cfg.method, T_world_cam=view.T_world_cam, extended=cfg.extended,
-                                K=view.K, perspective=cfg.perspective, dt_s=dt_s)  # fmt: skip
+                                K=view.K, perspective=cfg.perspective, dt_s=dt_s, t_ns=view.t_ns)  # fmt: skip
     total = time.perf_counter() - t0
     out: dict = {"motion": str(motion), "frames": int(view.W_px.shape[0])}
     out["pa_mpjpe_mm_init"], out["per_joint_mm_init"] = _score(res.init.S, view.gt_ned_m)

@@ -37,7 +37,7 @@ from reconstruction.monocular.perspective import (
 )
 from skycap.errors import SkycapError
 from reconstruction.monocular.single_frame import InitConfig, InitResult, initialise
-from reconstruction.monocular.tracks import temporal_outlier_mask
+from reconstruction.monocular.tracks import temporal_outlier_mask, track_noise_px
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,7 @@ class TrackConfig:
     enabled: bool = True
     half_window: int = 3
     threshold_rel: float = 0.2
+    noise_mult: float = 2.0  # flag threshold >= this x the tracks' typical jitter (small, far person)
 
 
 @dataclasses.dataclass
@@ -107,6 +108,7 @@ def reconstruct_monocular(
     K: np.ndarray | None = None,
     perspective: bool = False,
     dt_s: float = 1.0 / 24.0,
+    t_ns: np.ndarray | None = None,
 ) -> MonocularResult:
     """Run the pipeline on one camera's keypoints.
 
@@ -119,19 +121,22 @@ def reconstruct_monocular(
         K: (3, 3) or (T, 3, 3) intrinsics (for the perspective BA).
         perspective: also run the perspective BA in the world frame (needs ``T_world_cam`` and ``K``),
             started from the paper BA placed in the world (:mod:`reconstruction.monocular.perspective`).
-        dt_s: frame period (perspective BA's smoothness).
+        dt_s: frame period (perspective BA's smoothness) when ``t_ns`` is not given.
+        t_ns: (T,) frame times (ns): the perspective BA's smoothness then uses the true (uneven) intervals.
     """
     cfg = cfg or MonocularConfig()
     W_px = np.asarray(W_px, dtype=float)
     T = W_px.shape[0]
     conf = np.ones((T, W_px.shape[2])) if confidence is None else np.asarray(confidence, dtype=float).copy()
     conf = np.where(np.isfinite(W_px).all(1), conf, 0.0)
+    noise_px = track_noise_px(W_px, conf, cfg.tracks.half_window) if T >= 3 else 0.0
     if cfg.tracks.enabled and T >= 3:
-        flagged = temporal_outlier_mask(W_px, conf, cfg.tracks.half_window, cfg.tracks.threshold_rel)
+        flagged = temporal_outlier_mask(W_px, conf, cfg.tracks.half_window, cfg.tracks.threshold_rel, cfg.tracks.noise_mult)
         conf = conf * ~flagged
-        log.info("track cleaning: %d of %d keypoints flagged", int(flagged.sum()), int((conf > 0).sum() + flagged.sum()))
+        log.info("track cleaning: %d of %d keypoints flagged (track jitter %.1f px)", int(flagged.sum()),
+                 int((conf > 0).sum() + flagged.sum()), noise_px)  # fmt: skip
     t0 = time.perf_counter()
-    init = initialise(W_px, conf, dictionary, cfg.init)
+    init = initialise(W_px, conf, dictionary, cfg.init, noise_px=noise_px)
     init_s = time.perf_counter() - t0
     w = conf * init.inlier
     t0 = time.perf_counter()
@@ -160,12 +165,15 @@ def reconstruct_monocular(
         t0 = time.perf_counter()
         T_wc = np.asarray(T_world_cam, dtype=float)
         Kf = np.asarray(K, dtype=float)
-        r0 = cfg.perspective.body_rms_radius_m
-        starts = [orthographic_to_world(ba.S, ba.R, W_px, w, T_wc, Kf, r0)]
+        pc = cfg.perspective
+        place = dict(limbs=dictionary.limbs, bone_rms_m=pc.body_bone_rms_m)  # size from the bones: posture-free
+        starts = [orthographic_to_world(ba.S, ba.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, **place)]
         if ext is not None:
-            starts.append(orthographic_to_world(ext.S, ext.R, W_px, w, T_wc, Kf, r0, frame=frame))
+            starts.append(orthographic_to_world(ext.S, ext.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, frame=frame, **place))
         # multi-start (paper BA, extended BA placed in the world): keep the lowest objective
-        runs = [perspective_bundle_adjust(W_px, w, T_wc, Kf, X0, dictionary.limbs, dt_s=dt_s, cfg=cfg.perspective) for X0 in starts]
+        t_s = None if t_ns is None else (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9
+        runs = [perspective_bundle_adjust(W_px, w, T_wc, Kf, X0, dictionary.limbs, dt_s=dt_s, cfg=cfg.perspective, t_s=t_s)
+                for X0 in starts]  # fmt: skip
         persp = min(runs, key=lambda r: r.objective_final_sigma[1])
         persp_s = time.perf_counter() - t0
     return MonocularResult(
@@ -188,26 +196,8 @@ def to_world_metric(
 
     The metric scale is not observable from one view, so each pose is scaled to the RMS radius
     ``body_rms_radius_m`` (e.g. the dictionary's mean); the depth of the body centre follows from the
-    image size (depth = f * radius_m / radius_px), the centre lies on the ray through the weighted
-    2D centre, and the orientation comes from the camera's rotation (R completed to 3x3).
+    image size (depth = f * radius_m / radius_px, robust over time:
+    :func:`reconstruction.monocular.perspective.robust_depth_track`), the centre lies on the ray through the
+    weighted 2D centre, and the orientation comes from the camera's rotation (R completed to 3x3).
     """
-    T = S_px.shape[0]
-    S = S_px - S_px.mean(axis=2, keepdims=True)
-    rad_px = np.sqrt(np.mean(np.sum(S**2, axis=1), axis=1))  # (T,)
-    s = body_rms_radius_m / np.maximum(rad_px, 1e-9)  # metres per pixel-unit
-    R_wc = T_world_cam[:, :3, :3]
-    if frame == "world":
-        S_w = S * s[:, None, None]
-    else:
-        S_cam = complete_rotation(R) @ S * s[:, None, None]
-        S_w = R_wc @ S_cam
-    f = 0.5 * (K[..., 0, 0] + K[..., 1, 1]) * np.ones(T)
-    depth = f * body_rms_radius_m / np.maximum(rad_px, 1e-9)
-    w = np.where(np.isfinite(W_px).all(1), weights, 0.0)
-    Wz = np.where(np.isfinite(W_px), W_px, 0.0)
-    c_px = np.einsum("tij,tj->ti", Wz, w) / np.maximum(w.sum(-1), 1e-9)[:, None]
-    Kinv = np.linalg.inv(K) * np.ones((T, 1, 1))
-    ray = np.einsum("tij,tj->ti", Kinv, np.concatenate([c_px, np.ones((T, 1))], 1))
-    centre_cam = ray / ray[:, 2:3] * depth[:, None]
-    centre_w = np.einsum("tij,tj->ti", R_wc, centre_cam) + T_world_cam[:, :3, 3]
-    return np.swapaxes(S_w, 1, 2) + centre_w[:, None, :]
+    return orthographic_to_world(S_px, R, W_px, weights, T_world_cam, K, body_rms_radius_m, frame=frame)

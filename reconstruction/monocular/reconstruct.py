@@ -3,10 +3,15 @@
 :func:`reconstruct_capture` takes a :class:`reconstruction.capture.Capture` (from the flight-folder reader
 :func:`reconstruction.multiview.flight.read_flight` or :func:`reconstruction.synth.synthesize_capture`),
 picks one camera and its most confident detector, runs :func:`reconstruction.monocular.pipeline.reconstruct_monocular`
-and writes BVH/NPZ/CSV/RRD with :func:`reconstruction.export.export_motion`, plus ``config.toml`` and
-``summary.json``. The orthographic reconstruction has no metric scale: the person is given the RMS joint
-radius of the dictionary's mean pose (or ``body_rms_radius_m``), and is placed along the camera ray of
-its 2D centre at the depth that this size implies (:func:`reconstruction.monocular.pipeline.to_world_metric`).
+on the span in which the camera sees the person (with the true, uneven frame times) and writes BVH/NPZ/CSV/RRD
+with :func:`reconstruction.export.export_motion`, plus ``config.toml`` and ``summary.json``.
+
+Placement in the world: the default (``variant="perspective"``) is the perspective BA with the drone's camera
+poses (:mod:`reconstruction.monocular.perspective`): the body's metric scale from an adult bone-length prior and
+the orbit's parallax (``summary.json``: ``body_scale``). The orthographic variants have no metric scale: the
+person is given the RMS joint radius of the dictionary's mean pose (or ``body_rms_radius_m``) and placed along
+the camera ray of its 2D centre at the depth that this size implies
+(:func:`reconstruction.monocular.pipeline.to_world_metric`).
 """
 
 from __future__ import annotations
@@ -93,9 +98,14 @@ def reconstruct_capture(
         raise CaptureError(f"variant must be 'paper', 'extended' or 'perspective', not {variant!r}")
     persp = variant == "perspective"
     if persp and body_rms_radius_m is not None:
-        cfg = dataclasses.replace(cfg, perspective=dataclasses.replace(cfg.perspective, body_rms_radius_m=body_rms_radius_m))
+        # the perspective BA's size reference is the bones' RMS length: the adult's, scaled like the given radius
+        pc = cfg.perspective
+        bone_rms = pc.body_bone_rms_m * body_rms_radius_m / pc.body_rms_radius_m
+        cfg = dataclasses.replace(cfg, perspective=dataclasses.replace(pc, body_rms_radius_m=body_rms_radius_m,
+                                                                       body_bone_rms_m=bone_rms))  # fmt: skip
     dt_s = float(np.median(np.diff(t_frame_ns))) * 1e-9
-    res = reconstruct_monocular(W, conf, d, cfg, T_world_cam=T_wc, extended=variant != "paper", K=K, perspective=persp, dt_s=dt_s)
+    res = reconstruct_monocular(W, conf, d, cfg, T_world_cam=T_wc, extended=variant != "paper", K=K, perspective=persp, dt_s=dt_s,
+                                t_ns=t_frame_ns)  # fmt: skip
     if variant == "extended" and res.ba_extended is not None:
         ba, frame = res.ba_extended, res.ba_extended_frame
     else:
@@ -121,6 +131,8 @@ def reconstruct_capture(
         "frames": int(len(t_frame_ns)), "init_seconds": res.init_seconds, "ba_seconds": res.ba_seconds,
         "perspective_seconds": res.perspective_seconds,
         "body_rms_radius_m": radius, "outputs": {k: str(v) for k, v in paths.items()},
+        **({"body_scale": res.ba_perspective.body_scale,
+            "bone_rms_m": res.ba_perspective.body_scale * cfg.perspective.body_bone_rms_m} if persp else {}),
     }  # fmt: skip
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

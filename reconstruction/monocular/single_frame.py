@@ -42,6 +42,8 @@ class InitConfig:
     outlier_threshold: float = 0.35  # residual beyond which a joint is flagged an outlier
     resolve_flips: bool = True  # second (depth-reflected) hypothesis per frame + temporal Viterbi choice
     flip_pairwise_weight: float = 1.0  # weight of the temporal term vs the per-frame fit in the Viterbi
+    noise_sigma_mult: float = 1.0  # with ``noise_px`` given: Geman-McClure scale >= this x noise_px (pixels)
+    noise_outlier_mult: float = 2.5  # with ``noise_px`` given: outlier threshold >= this x noise_px (pixels)
 
 
 @dataclasses.dataclass
@@ -193,6 +195,7 @@ def initialise(
     confidence: np.ndarray | None,
     dictionary: PoseDictionary,
     cfg: InitConfig | None = None,
+    noise_px: float = 0.0,
 ) -> InitResult:
     """Single-frame 3D pose + camera rotation for every frame (independently, vectorised).
 
@@ -200,6 +203,11 @@ def initialise(
         W_px: (T, 2, J) 2D keypoints in pixels (NaN allowed where confidence is 0).
         confidence: (T, J) detector confidences in [0, 1] (0 = missing); None = all ones.
         dictionary: pose dictionary with J joints.
+        noise_px: typical keypoint error in pixels (e.g. :func:`reconstruction.monocular.tracks.track_noise_px`),
+            0 = unknown. The robust scale and the outlier threshold are relative to the person's image size
+            (``robust_sigma``, ``outlier_threshold``); for a small (far) person they are raised to
+            ``noise_sigma_mult`` / ``noise_outlier_mult`` times ``noise_px``, so that ordinary detector noise
+            is not taken for outliers.
     Returns:
         :class:`InitResult` (pixel units).
     """
@@ -212,7 +220,6 @@ def initialise(
     conf = np.where(np.isfinite(W_px).all(1), conf, 0.0)
     W_px = np.where(np.isfinite(W_px), W_px, 0.0)
     B = dictionary.bases
-    K = B.shape[0]
     w = conf.copy()
     Wn, mean, scale = _normalise(W_px, w)
     M = _convex(Wn, w, B, cfg)
@@ -222,8 +229,12 @@ def initialise(
     c = np.einsum("tkij,tij->tk", M, R) / 2.0  # project each M_k on R: c_k = <M_k, R> / 2
     R, t, c = _refine(Wn, w, B, R, c, cfg)
     # IRLS with an annealed Geman-McClure scale: refit with robust weights, from wide to narrow.
+    # per-frame floors from the pixel noise (normalised units: divided by the frame's image scale)
+    sig_floor = (cfg.noise_sigma_mult * max(noise_px, 0.0) / scale)[:, None]  # (T,1)
+    thr = np.maximum(cfg.outlier_threshold, (cfg.noise_outlier_mult * max(noise_px, 0.0) / scale)[:, None])
     sigmas = np.geomspace(4 * cfg.robust_sigma, cfg.robust_sigma, max(1, cfg.robust_rounds))
-    for sigma in sigmas:
+    for sigma0 in sigmas:
+        sigma = np.maximum(sigma0, sig_floor)
         res = np.linalg.norm(Wn - (R @ np.einsum("tk,kij->tij", c, B) + t[..., None]), axis=1)  # (T,J)
         w = conf * (sigma**2 / (sigma**2 + res**2)) ** 2
         R, t, c = _refine(Wn, w, B, R, c, cfg)
@@ -234,7 +245,7 @@ def initialise(
         # (R, c) and (-R, -c) project identically; keep the upright one (positive overlap with the mean pose)
         sgn = np.where(np.einsum("tk,kij,ij->t", c, B, dictionary.mean_pose) < 0, -1.0, 1.0)
         R, c = R * sgn[:, None, None], c * sgn[:, None]
-    inlier = (conf > 0) & (res < cfg.outlier_threshold)
+    inlier = (conf > 0) & (res < thr)
     S = np.einsum("tk,kij->tij", c, B) * scale[:, None, None]
     t_px = t * scale[:, None] + mean
     return InitResult(

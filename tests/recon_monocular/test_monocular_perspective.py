@@ -7,6 +7,7 @@ import pytest
 
 from reconstruction.monocular.linalg import complete_rotation
 from reconstruction.monocular.perspective import (
+    ADULT_BONES_M,
     PerspectiveConfig,
     bone_lengths,
     orthographic_to_world,
@@ -45,9 +46,17 @@ def _scene(T=48, fps=24.0, omega_deg_s=30.0, yaw_rate_deg_s=20.0):
     return X, np.swapaxes(uv, 1, 2), T_wc, K
 
 
+def _body_bone_rms() -> float:
+    """RMS of _BODY's limb/torso bone lengths (the perspective BA's size reference)."""
+    return float(np.sqrt(np.mean(np.square([np.linalg.norm(_BODY[a] - _BODY[b]) for a, b in COCO17_LIMBS if min(a, b) >= 5]))))
+
+
 def _cfg(**kw):  # noqa: D103
     r = float(np.sqrt(np.mean(np.sum((_BODY - _BODY.mean(0)) ** 2, -1))))
-    base = dict(body_rms_radius_m=r, stages=2, iters_per_stage=150, camera_sigma_deg=0.0)  # exact cameras
+    # exact cameras; the size and proportions priors are this body's (as if measured: they differ from the adult's)
+    bones = tuple(float(np.linalg.norm(_BODY[a] - _BODY[b])) for a, b in ADULT_BONES_M)
+    base = dict(body_rms_radius_m=r, body_bone_rms_m=_body_bone_rms(), bone_prior_m=bones, stages=2, iters_per_stage=150,
+                camera_sigma_deg=0.0)  # fmt: skip
     base.update(kw)
     return PerspectiveConfig(**base)
 
