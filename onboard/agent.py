@@ -209,6 +209,8 @@ class Agent:
     def _on_state(self, st: VehicleState) -> None:
         self.state = st
         self.rates["state"].tick()
+        if self.tracking is not None and self.cfg.track.gps_jump_threshold_m > 0:
+            self._check_gps_jump(st)
         if self.recorder is not None:
             self._record(self.key(keys.STATE), encode(stamp_sent(st)), st.header.t_measurement_ns)
         t = time.monotonic()
@@ -218,6 +220,34 @@ class Agent:
                 self.bus.publish(self.key(keys.STATE), st)
             except Exception as e:
                 log.debug("state publish failed: %s", e)
+
+    def _check_gps_jump(self, st: VehicleState) -> None:
+        """Track mode: notice a jump of the reported position (a step the reported velocity does not explain,
+        between samples <= 0.5 s apart); log and count it, and hand it to the tracking stage, which takes it back
+        from the own camera poses and the planning position (relaxing over ``track.gps_jump_relax_s`` while the
+        filter's offset takes over), so that the drone stays in the fleet's frame."""
+        t_ns = int(st.header.t_measurement_ns)
+        p = np.asarray(st.position_ned_m, dtype=float)
+        v = np.asarray(st.velocity_ned_m_s, dtype=float)
+        prev, self._jump_prev = getattr(self, "_jump_prev", None), (t_ns, p, v)
+        if prev is None or not 0 < (t_ns - prev[0]) * 1e-9 <= 0.5:
+            return
+        dt_s = (t_ns - prev[0]) * 1e-9
+        v_mean = 0.5 * (prev[2] + v)
+        step = p - (prev[1] + v_mean * dt_s)
+        size = float(np.linalg.norm(step))
+        # receive-time stamps: a delayed sample followed by a burst makes dt too long; tolerate the whole travel
+        # over dt on top of the threshold so that such bursts never look like jumps
+        if size <= self.cfg.track.gps_jump_threshold_m + float(np.linalg.norm(v_mean)) * dt_s:
+            return
+        t = self.cfg.track
+        self.tracking.set_position_step(step, t_ns, t.gps_jump_relax_s)
+        reason = (f"reported position jumped {size:.2f} m ({', '.join(f'{x:+.2f}' for x in step)} NED) against its "
+                  f"velocity: taken back from the own poses, relaxing over {t.gps_jump_relax_s:.0f} s")
+        log.warning("%s: GPS jump: %s", self.id, reason)
+        self.warnings.append("GPS jump " + reason)
+        if self.failsafe_log is not None:
+            self.failsafe_log.add(time.time(), "gps_jump", [reason], source="estimator")
 
     def on_gcs_health(self, rx) -> None:
         self.t_last_gcs_s = time.monotonic()
@@ -393,13 +423,14 @@ class Agent:
 
     def _feed_formation(self, src, t_s: float) -> np.ndarray:
         """Before an MPC step: the fused person estimate and the teammates' states; returns this drone's
-        estimated position offset (reported - true, (3,), zeros without a track)."""
+        estimated position offset (reported - true, (3,): the filter's offset plus a detected GPS jump being
+        taken back; zeros without either)."""
         offset = np.zeros(3)
         if self.tracking is not None:
             est = self.tracking.estimate(int(t_s * 1e9))
             if est is not None:
                 src.set_target(est.position_ned_m, est.velocity_ned_m_s)
-                offset = np.asarray(est.offset_ned_m, dtype=float)
+            offset = self.tracking.own_offset(est, int(t_s * 1e9))
         for d, st in self.neighbour_states.items():
             src.set_teammate_state(d, st.header.t_measurement_ns, st.position_ned_m, st.velocity_ned_m_s)
         return offset

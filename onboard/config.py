@@ -145,6 +145,12 @@ class TrackConfig:
     #: teammate plans/states older than this are not avoided (s)
     plan_timeout_s: float = 1.0
     failsafe: FormationFailsafeConfig = field(default_factory=FormationFailsafeConfig)
+    #: GPS jump detection: a reported position step this far (m) beyond what the reported velocity explains
+    #: counts as a jump of the position estimate; the step is then taken back from this drone's camera poses and
+    #: planning position, relaxing to zero with time constant ``gps_jump_relax_s`` while the filter's own-offset
+    #: estimate takes it over (so the drone stays in the fleet's frame). 0 = off
+    gps_jump_threshold_m: float = 1.5
+    gps_jump_relax_s: float = 30.0
 
 
 @dataclass

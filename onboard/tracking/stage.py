@@ -12,7 +12,8 @@ Pure logic, no I/O: the agent hands it Detections messages and publishes what it
   :class:`shared_msgs.TargetEstimate` to publish on ``<drone>/target``.
 
 It also keeps the series the flight summary needs: the own-position offset estimate over time
-(``offset_log``: (t_ns, north, east, down)) and per-frame ROI hits.
+(``offset_log``: (t_ns, north, east, down), including a detected position step, see
+:meth:`TrackingStage.set_position_step`) and per-frame ROI hits.
 
 Malformed input (:func:`detection_problem`: a camera pose that is not a rigid transform, a covariance with
 negative variances, impossible image size, boxes with non-finite or inverted edges, negative variances or a
@@ -104,6 +105,8 @@ class TrackingStage:
         self.counts = {"own_frames": 0, "own_measurements": 0, "teammate_measurements": 0, "roi_planned": 0,
                        "malformed_detections": 0, "malformed_boxes": 0}
         self.last_malformed: str = ""
+        #: a detected jump of the own position estimate: (step (3,) m, t_ns of the jump, relax time s)
+        self._step: tuple[np.ndarray, int, float] | None = None
         self._seq = 0
 
     def set_camera_info(self, info: CameraInfo) -> None:
@@ -113,6 +116,39 @@ class TrackingStage:
         if self.intrinsics is not None and (self.intrinsics.width_px, self.intrinsics.height_px) == (det.width_px, det.height_px):
             return self.intrinsics
         return self.intrinsics  # teammates fly the same camera model; None until our own info arrives
+
+    # ------------------------------------------------------------------ own position steps (GPS jumps)
+    def set_position_step(self, step_ned_m, t_ns: int, relax_s: float) -> None:
+        """The own reported position jumped by ``step_ned_m`` (3,) at ``t_ns`` (a step its velocity does not
+        explain: an estimator reset / GPS jump). From then on the own camera poses are taken back by
+        :meth:`position_correction` (the step, relaxing to 0 over ``relax_s``: the filter's offset state takes
+        it over meanwhile), so that the own detections stay consistent with the fleet's frame."""
+        step = np.asarray(step_ned_m, dtype=float).reshape(3)
+        if not (np.all(np.isfinite(step)) and relax_s > 0):
+            raise ValueError(f"set_position_step: need a finite step (m) and relax_s > 0, got {step_ned_m!r}, {relax_s}")
+        self._step = (self.position_correction(t_ns) + step, int(t_ns), float(relax_s))
+        self.counts["position_steps"] = self.counts.get("position_steps", 0) + 1
+
+    def position_correction(self, t_ns: int) -> np.ndarray:
+        """(3,) m to subtract from the own reported position at t_ns (zeros without a detected step)."""
+        if self._step is None or t_ns < self._step[1]:
+            return np.zeros(3)
+        step, t0, tau = self._step
+        return step * float(np.exp(-(t_ns - t0) * 1e-9 / tau))
+
+    def _own_pose(self, det: Detections) -> Detections:
+        """The message with its pose covariance (the configured grade when the detector left it empty) and its
+        camera position taken back by a detected position step."""
+        c = self.cfg
+        if len(det.T_world_cam_cov) != 36:
+            cov = np.diag([c.camera_position_sigma_m**2] * 3 + [c.camera_rotation_sigma_rad**2] * 3)
+            det = msgspec.structs.replace(det, T_world_cam_cov=tuple(float(v) for v in cov.reshape(-1)))
+        corr = self.position_correction(det.header.t_measurement_ns)
+        if np.any(corr != 0.0):
+            T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4).copy()
+            T[:3, 3] -= corr
+            det = msgspec.structs.replace(det, T_world_cam=tuple(float(v) for v in T.reshape(-1)))
+        return det
 
     def _sanitise(self, det: Detections) -> Detections | None:
         """The message without its malformed boxes; None when the message as a whole is malformed. Counts both."""
@@ -170,10 +206,7 @@ class TrackingStage:
         if det is None:
             return None
         self.counts["own_frames"] += 1
-        if len(det.T_world_cam_cov) != 36:
-            c = self.cfg
-            cov = np.diag([c.camera_position_sigma_m**2] * 3 + [c.camera_rotation_sigma_rad**2] * 3)
-            det = msgspec.structs.replace(det, T_world_cam_cov=tuple(float(v) for v in cov.reshape(-1)))
+        det = self._own_pose(det)
         roi = tuple(det.roi_px) if plan is not None else (0.0, 0.0, 0.0, 0.0)
         if plan is None:
             plan = self.plan_for(det.header.t_measurement_ns, det.T_world_cam)
@@ -201,11 +234,18 @@ class TrackingStage:
             return
         self.counts["teammate_measurements"] += self._fuse(det)
 
+    def own_offset(self, est: TrackEstimate | None, t_ns: int) -> np.ndarray:
+        """(3,) this drone's total position correction at t_ns: the filter's offset (reported - true, in the
+        frame of the corrected poses) plus a detected position step (zeros for the offset without a track)."""
+        b = np.zeros(3) if est is None else np.asarray(est.offset_ned_m, dtype=float)
+        return b + self.position_correction(t_ns)
+
     def _log_offset(self) -> None:
         st = self.filter.state
         if st is not None:
             x, _, t = st
-            self.offset_log.append((t, float(x[6]), float(x[7]), float(x[8])))
+            o = x[6:9] + self.position_correction(t)
+            self.offset_log.append((t, float(o[0]), float(o[1]), float(o[2])))
 
     def estimate(self, t_ns: int) -> TrackEstimate | None:
         """The prediction at t_ns (None without a track). Before the newest measurement: the newest state."""

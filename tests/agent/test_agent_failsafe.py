@@ -98,3 +98,29 @@ def test_agent_acts_on_formation_failsafes():
         assert any("formation failsafe: respace" in w for w in agent.warnings)
 
     asyncio.run(main())
+
+
+def _vs(t_s: float, pos, vel) -> VehicleState:
+    return VehicleState(header=VehicleState.make_header("drone_1", int(t_s * 1e9)), position_ned_m=tuple(pos),
+                        velocity_ned_m_s=tuple(vel), q_world_body=(1.0, 0.0, 0.0, 0.0))
+
+
+def test_agent_detects_a_gps_jump_and_takes_it_back():
+    agent = Agent(AgentConfig(drone_id="drone_1", fleet="f", mode="track"), FakeBus(), FakeAutopilot())
+    t0 = 1000.0
+    v = (2.0, 0.0, 0.0)
+    for i in range(50):  # flying north at 2 m/s, 50 Hz; then a delayed sample and a burst: not a jump
+        agent._on_state(_vs(t0 + 0.02 * i, (2.0 * 0.02 * i, 0.0, -6.0), v))
+    agent._on_state(_vs(t0 + 1.4, (2.0 * 1.0, 0.0, -6.0), v))  # arrived 0.4 s late, moved 2 cm
+    agent._on_state(_vs(t0 + 1.4005, (2.0 * 1.02, 0.0, -6.0), v))
+    assert agent.failsafe_log.events == [] and not agent.tracking.position_correction(int(2000e9)).any()
+    agent._on_state(_vs(t0 + 1.42, (2.0 * 1.04 + 3.0, 0.0, -6.0), v))  # +3 m north in 20 ms
+    ev = agent.failsafe_log.events[-1]
+    assert ev["action"] == "gps_jump" and ev["source"] == "estimator"
+    assert agent.failsafe_log.counts == {"estimator:gps_jump": 1}
+    t_j = int((t0 + 1.42) * 1e9)
+    np.testing.assert_allclose(agent.tracking.position_correction(t_j), [3.0, 0.0, 0.0], atol=0.02)
+    assert not agent.tracking.position_correction(t_j - 1).any()
+    # the planning position is taken back by it (no track yet: the correction alone)
+    np.testing.assert_allclose(agent._feed_formation(agent._formation_source(make_orbit_plan(
+        ["drone_1"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1)), t0 + 1.42 + 30.0), [3.0 * math.exp(-1.0), 0.0, 0.0], atol=0.02)

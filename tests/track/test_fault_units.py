@@ -132,3 +132,42 @@ def test_gps_jump_steps_the_estimate_and_the_vehicle_holds_in_the_jumped_frame()
         assert "finite" in str(e)
     else:
         raise AssertionError("a NaN jump must be refused")
+
+
+def test_stage_takes_a_position_step_back_from_its_own_poses():
+    rng = np.random.default_rng(2)
+    stage, ref = TrackingStage("drone_0"), TrackingStage("drone_0")
+    for st in (stage, ref):
+        st.set_camera_info(_info())
+    step = np.array([3.0, -1.0, 0.0])
+    stage.set_position_step(step, int(10e9), relax_s=30.0)
+    errs = []
+    for i in range(150):
+        for k in range(3):
+            t = i / 5.0 + k / 15.0
+            det, _ = _detections(k, t, i, rng)
+            if k == 0:
+                jumped = det
+                if t >= 10.0:  # the reported pose carries the step (a GPS jump at t = 10 s)
+                    T = np.asarray(det.T_world_cam).reshape(4, 4).copy()
+                    T[:3, 3] += step
+                    jumped = msgspec.structs.replace(det, T_world_cam=tuple(T.reshape(-1)))
+                out = stage.on_own_detections(jumped)
+                ref.on_own_detections(det)
+                # shared with the pose taken back: what the teammates get is consistent with the fleet's frame
+                corr = step * math.exp(-(t - 10.0) / 30.0) if t >= 10.0 else np.zeros(3)
+                np.testing.assert_allclose(np.asarray(out.T_world_cam).reshape(4, 4)[:3, 3],
+                                           np.asarray(jumped.T_world_cam).reshape(4, 4)[:3, 3] - corr, atol=1e-9)
+            else:
+                stage.on_teammate_detections(det)
+                ref.on_teammate_detections(det)
+        if i / 5.0 > 12.0:
+            e, r = stage.estimate(int(i / 5.0 * 1e9)), ref.estimate(int(i / 5.0 * 1e9))
+            errs.append(np.linalg.norm(e.position_ned_m - r.position_ned_m))
+            # total own correction = the filter's offset + the step still being taken back ~ the whole step
+            np.testing.assert_allclose(stage.own_offset(e, int(i / 5.0 * 1e9)) - ref.own_offset(r, int(i / 5.0 * 1e9)),
+                                       step, atol=0.6)
+    assert max(errs) < 0.3, max(errs)  # the person estimate is not dragged by the jump
+    assert stage.counts["position_steps"] == 1
+    o = np.asarray(stage.offset_log)
+    assert abs(o[-1, 1] - np.asarray(ref.offset_log)[-1, 1] - 3.0) < 0.6

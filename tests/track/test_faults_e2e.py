@@ -127,7 +127,10 @@ def test_sudden_3_m_gps_jump_on_one_drone(gps_jump):
     out, s, _ = gps_jump
     _assert_tracking(s, ["drone_1", "drone_2"])
     assert "SIMULATED GPS JUMP" in (out / "logs" / "sim.log").read_text()
-    # drone_2's filter takes the jump into its own-position offset (north component moves toward +3 m)
+    # drone_2's agent noticed the jump of its reported position (and only it) and took it back from its poses
+    jumps = {d: [e for e in _stats(out, d)["failsafe_events"] if e["action"] == "gps_jump"] for d in ("drone_1", "drone_2")}
+    assert len(jumps["drone_2"]) == 1 and not jumps["drone_1"], jumps
+    # drone_2's own-position correction (filter offset + the detected step) takes the jump (north: ~+3 m)
     st = _stats(out, "drone_2")
     t_jump_ns = (json.loads((out / "plan.json").read_text())["start_time_ns"] + 10e9)
     off = [r for r in st["offset_log"]]
@@ -135,7 +138,10 @@ def test_sudden_3_m_gps_jump_on_one_drone(gps_jump):
     after = [r[1] for r in off if r[0] >= t_jump_ns + 6e9]
     assert before and after
     shift = sum(after) / len(after) - sum(before) / len(before)
-    assert shift > 1.0, (shift, st["filter_stats"])
+    assert shift > 2.0, (shift, st["filter_stats"])
+    # its own position corrected by that offset: most of the 3 m error is gone
+    row = s["tracking"]["drones"]["drone_2"]
+    assert row["self_pos_err_m_after"] < 0.5 * row["self_pos_err_m_before"], row
 
 
 def test_killed_agent_the_others_respace(killed):
