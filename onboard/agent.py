@@ -152,6 +152,8 @@ class Agent:
         self._t_formation_start_s: float | None = None
         self._consecutive_fallbacks = 0
         self._fs_response = None
+        self.detector_worker = None  #: track mode with detections = "onnx": the ONNX detector's worker thread
+        self._loop: asyncio.AbstractEventLoop | None = None
         if cfg.mode == "track":
             from onboard.tracking.stage import TrackingStage, TrackingStageConfig
 
@@ -168,6 +170,13 @@ class Agent:
                 camera_position_sigma_m=cfg.track.camera_position_sigma_m,
                 camera_rotation_sigma_rad=cfg.track.camera_rotation_sigma_rad))
             self.rates["detections"] = RateMeter()
+            if cfg.track.detections == "onnx":
+                from onboard.detector.detector import DetectorConfig, PersonDetector
+                from onboard.detector.stage import DetectionWorker
+
+                self.detector_worker = DetectionWorker(
+                    self.id, PersonDetector(DetectorConfig(model=cfg.track.detector_model, threads=cfg.track.detector_threads)),
+                    self._deliver_detections)
             from onboard.formation.failsafe import FailsafeLog
 
             self.failsafe_log = FailsafeLog(self.id)
@@ -308,23 +317,25 @@ class Agent:
             self._spawn(self._execute(Action.START_ORBIT, plan.plan_id, {}), "plan")
 
     def on_camera(self, rx) -> None:
-        self._record(rx.key, rx.data, rx.t_received_ns)
         msg = rx.msg
+        if self.cfg.record_camera or not isinstance(msg, CameraFrame):  # frames taken only for the detector: not kept
+            self._record(rx.key, rx.data, rx.t_received_ns)
         if isinstance(msg, CameraInfo):
             self.camera_info = msg
             if self.tracking is not None:
                 self.tracking.set_camera_info(msg)
         elif isinstance(msg, Detections):
-            if self.tracking is not None and rx.key == self.key(keys.SIM_DETECTIONS):
-                self.rates["detections"].tick()
-                try:
-                    out = self.tracking.on_own_detections(msg)
-                    if out is not None:  # None: malformed, ignored and counted by the stage
-                        self.publish(keys.DETECTIONS, out)
-                except Exception:
-                    log.exception("%s: tracking stage failed", self.id)
+            if self.tracking is not None and self.detector_worker is None and rx.key == self.key(keys.SIM_DETECTIONS):
+                self._own_detections(msg, None)
         elif isinstance(msg, CameraFrame):
             self.rates["frame"].tick()
+            if self.detector_worker is not None and self.tracking is not None:
+                try:
+                    plan = self.tracking.plan_for(msg.header.t_measurement_ns, msg.T_world_cam)
+                    if plan is not None:
+                        self.detector_worker.submit(msg, plan.mode, plan.roi_px, context=plan)
+                except Exception:
+                    log.exception("%s: planning the detection failed", self.id)
             for stage in self.perception:
                 try:
                     for topic, out in stage.process(msg, self.camera_info, self.state):
@@ -333,6 +344,23 @@ class Agent:
                     log.exception("%s: perception stage %s failed", self.id, getattr(stage, "name", stage))
         elif isinstance(msg, Keypoints2D):
             self.rates["keypoints"].tick()
+
+    def _own_detections(self, msg: Detections, plan) -> None:
+        """This drone's detections (the simulator's, or the ONNX detector's with the plan it ran with) ->
+        the tracking stage -> shared with the teammates."""
+        self.rates["detections"].tick()
+        try:
+            out = self.tracking.on_own_detections(msg, plan)
+            if out is not None:  # None: malformed, ignored and counted by the stage
+                self.publish(keys.DETECTIONS, out)
+        except Exception:
+            log.exception("%s: tracking stage failed", self.id)
+
+    def _deliver_detections(self, det: Detections, plan) -> None:
+        """Called on the detector's worker thread: hop to the agent's event loop."""
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._own_detections, det, plan)
 
     # --- actions ------------------------------------------------------------------------------------
     def _spawn(self, coro, name: str) -> None:
@@ -532,7 +560,8 @@ class Agent:
         return {
             "drone_id": self.id,
             "mode": self.cfg.mode,
-            "detections_source": self.cfg.track.detections,
+            "detections_source": ("onnx:" + self.cfg.track.detector_model) if self.detector_worker else self.cfg.track.detections,
+            "detector": None if self.detector_worker is None else self.detector_worker.stats(),
             "mpc_solve_ms": [round(v, 3) for v in self.mpc_solve_ms],
             "mpc_fallbacks": int(self.mpc_fallbacks),
             "teammate_plans_received": int(self.teammate_plans_received),
@@ -729,6 +758,7 @@ class Agent:
         """Connect to the autopilot and the network; start the loops."""
         cfg = self.cfg
         loop = asyncio.get_running_loop()
+        self._loop = loop
         from onboard.transport import deliver_to_loop
 
         sub = lambda key, cb, t: self._subs.append(self.bus.subscribe(key, deliver_to_loop(loop, cb), t))
@@ -740,7 +770,8 @@ class Agent:
             sub(keys.all_drones_key(cfg.fleet, keys.DETECTIONS), self.on_detections, Detections)
             sub(keys.all_drones_key(cfg.fleet, keys.FORMATION_PLAN), self.on_formation_plan, FormationPlan)
             if not cfg.record_camera:
-                for topic in (keys.CAMERA_INFO, keys.SIM_DETECTIONS):
+                topics = (keys.CAMERA_INFO, keys.SIM_DETECTIONS) + ((keys.CAMERA_IMAGE,) if self.detector_worker else ())
+                for topic in topics:
                     sub(self.key(topic), self.on_camera, None)
         if cfg.record_camera:
             # the simulator camera also sends exact keypoints and simulated detections: kept for evaluation
@@ -794,6 +825,8 @@ class Agent:
                 s.close()
             except Exception:
                 pass
+        if self.detector_worker is not None:
+            self.detector_worker.close(wait=False)
         await self.autopilot.close()
 
     async def run(self, stop: asyncio.Event) -> None:

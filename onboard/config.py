@@ -125,8 +125,12 @@ class TrackConfig:
     """
 
     #: where this drone's own detections come from: "sim" = the simulator's box detector
-    #: (``<drone>/sim/detections``, labelled ``detector="simulated"``)
+    #: (``<drone>/sim/detections``, labelled ``detector="simulated"``); "onnx" = the ONNX person detector
+    #: (``onboard/detector``, model ``detector_model``) on this drone's camera frames (``<drone>/camera/image``),
+    #: in the region of interest the filter predicts (a worker thread, newest frame wins)
     detections: str = "sim"
+    detector_model: str = "nanodet"
+    detector_threads: int = 1  #: onnxruntime intra-op threads of the detector
     mpc_horizon_steps: int = 15
     mpc_dt_s: float = 0.1
     max_speed_h_m_s: float = 5.0
@@ -180,9 +184,11 @@ class AgentConfig:
     def validate(self) -> "AgentConfig":
         if self.mode not in ("orbit", "track"):
             raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
-        if self.track.detections != "sim":
-            raise ConfigError(f"track.detections={self.track.detections!r}: only 'sim' (the simulator's detector on "
-                              "sim/detections) is wired into the agent so far")
+        if self.track.detections not in ("sim", "onnx"):
+            raise ConfigError(f"track.detections={self.track.detections!r}: use 'sim' (the simulator's detector on "
+                              "sim/detections) or 'onnx' (the ONNX person detector on the camera frames)")
+        if self.track.detector_threads < 1:
+            raise ConfigError(f"track.detector_threads={self.track.detector_threads}: must be >= 1")
         for name in ("gcs_loss_action", "low_battery_action"):
             v = getattr(self.safety, name)
             if v not in ("land", "return", "hold"):
