@@ -93,7 +93,7 @@ class PerspectiveConfig:
     min_depth_m: float = 0.5  # cheirality: joints closer to (or behind) the camera are penalised
     camera_sigma_deg: float = 3.0  # prior std of the per-frame camera rotation corrections (0 = trust the poses)
     parallax_tau_s: float = 1.0  # time scale of the parallax term (Gaussian low-pass of the world root path)
-    parallax_acc_sigma_mps2: float = 0.2  # that low-passed root's acceleration (CMU: RMS 0.03-0.4 m/s^2)
+    parallax_acc_sigma_mps2: float = 0.4  # per axis, of that low-passed root (CMU: 3D RMS 0.03-0.4 m/s^2; demo person 0.2)
     depth_gain: float = 1.0  # preconditioning of the joints' depth (camera z) coordinates
     nuclear_eps_m: float = 0.01  # smoothing of the nuclear norm (per-frame RMS metres)
     iters_per_stage: int = 60
