@@ -85,12 +85,13 @@ def main() -> int:
     # perspective BA in the world with the drone's camera poses, one start (the paper BA placed in the world)
     T_wc = view.T_world_cam[: args.frames]
     pc = cfg.perspective
-    X0 = orthographic_to_world(res.ba.S, res.ba.R, W, res.weights, T_wc, view.K, pc.body_rms_radius_m)
-    dt_s = float(np.median(np.diff(view.t_ns))) * 1e-9
+    X0 = orthographic_to_world(res.ba.S, res.ba.R, W, res.weights, T_wc, view.K, pc.body_rms_radius_m, limbs=d.limbs,
+                               bone_rms_m=pc.body_bone_rms_m)  # fmt: skip
+    t_s = (view.t_ns[: args.frames] - view.t_ns[0]) * 1e-9
     tp = []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
-        rp = perspective_bundle_adjust(W, res.weights, T_wc, view.K, X0, d.limbs, dt_s=dt_s, cfg=pc)
+        rp = perspective_bundle_adjust(W, res.weights, T_wc, view.K, X0, d.limbs, cfg=pc, t_s=t_s)
         tp.append(time.perf_counter() - t0)
     rows.append(("BA perspective (1 start, torch)", min(tp), rp.iterations))
     print(f"machine: {_cpu()}, {os.cpu_count()} CPUs (shared), numpy {np.__version__}, BLAS threads 1, torch {torch.__version__} threads 1")
