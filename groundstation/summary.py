@@ -21,7 +21,9 @@ The computations (:func:`orbit_errors`, :func:`min_pairwise_distance_m`) are pla
 Tracking flights (``skycap demo --mode track``): :func:`summarize_tracking` adds, per drone, over the steady
 window (plan start + ``settle_s`` to the land command): ``target_rmse_m`` / ``target_rmse_h_m`` (the drone's
 published fused estimate ``target`` against the true person root, 3D / horizontal, each estimate against the
-truth at its own time), ``target_rmse_fleet_frame_m`` (the same after removing the fleet's mean GPS bias,
+truth at its own time: the capture time of the newest detection fused), ``target_rmse_at_send_m`` (each
+estimate predicted with its velocity to the time it was sent, against the truth then: adds the detection
+latency's prediction error), ``target_rmse_fleet_frame_m`` (the same after removing the fleet's mean GPS bias,
 which no drone can observe without an absolute reference), ``person_in_roi_rate`` (own frames whose ROI, planned from the fused estimate before
 the frame's detection was fused, contains the person's exact image box, among frames where the person is in
 the image), ``mpc_solve_ms_median`` / ``mpc_solve_ms_p99`` / ``mpc_fallbacks`` (from ``<drone>.track.json``,
@@ -379,6 +381,7 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
     t_tracking_all = []
     for k, d in enumerate(drone_ids):
         t_est, p_est, status, t_state, p_state = [], [], [], [], []
+        t_pub, p_pred = [], []
         rois: dict[int, tuple] = {}
         gt_boxes: dict[int, tuple] = {}
         det_t = []
@@ -388,6 +391,10 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
                 t_est.append(msg.header.t_measurement_ns * 1e-9)
                 p_est.append(msg.position_ned_m)
                 status.append(msg.status)
+                # predicted to the time it was sent (what a receiver acting at once would use)
+                dt = (msg.header.t_sent_ns - msg.header.t_measurement_ns) * 1e-9
+                t_pub.append(msg.header.t_sent_ns * 1e-9)
+                p_pred.append(np.asarray(msg.position_ned_m) + dt * np.asarray(msg.velocity_ned_m_s))
             elif isinstance(msg, Detections):
                 rois[msg.frame_index] = msg.roi_px
                 det_t.append(msg.header.t_measurement_ns * 1e-9)
@@ -403,6 +410,7 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
         stats_path = flight_dir / f"{d}.track.json"
         stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
         per[d] = dict(t_est=np.asarray(t_est), p_est=np.asarray(p_est, dtype=float).reshape(-1, 3), status=status,
+                      t_pub=np.asarray(t_pub), p_pred=np.asarray(p_pred, dtype=float).reshape(-1, 3),
                       rois=rois, gt_boxes=gt_boxes, det_t=np.asarray(sorted(det_t)), t_state=np.asarray(t_state),
                       p_state=np.asarray(p_state, dtype=float).reshape(-1, 3), stats=stats)
     t0 = plan.start_time_ns * 1e-9 + settle_s
@@ -420,6 +428,11 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
             rmse_h = float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))))
         else:
             rmse = rmse_h = math.nan
+        psel = (P["t_pub"] >= t0) & (P["t_pub"] <= t1)
+        rmse_pred = math.nan
+        if psel.sum():
+            e_pred = P["p_pred"][psel] - _interp_rows(P["t_pub"][psel], tt, person)
+            rmse_pred = float(np.sqrt(np.mean(np.sum(e_pred**2, axis=1))))
         t_tracking_all.extend(t for t, s, ok in zip(P["t_est"], P["status"], sel) if s == "tracking")
         frames = [f for f in P["rois"] if f in P["gt_boxes"]]
         hits = [box_in_roi(P["gt_boxes"][f], P["rois"][f]) for f in frames]
@@ -455,6 +468,7 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
             "target_rmse_m": round(rmse, 3),
             "target_rmse_fleet_frame_m": round(rmse_ff, 3),
             "target_rmse_h_m": round(rmse_h, 3),
+            "target_rmse_at_send_m": round(rmse_pred, 3),
             "target_estimates": int(sel.sum()),
             "person_in_roi_rate": round(float(np.mean(hits)), 4) if hits else math.nan,
             "roi_frames": len(hits),

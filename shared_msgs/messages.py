@@ -180,7 +180,9 @@ class Keypoints2D(Message, tag="keypoints2d"):
 
 
 class TargetEstimate(Message, tag="target_estimate"):
-    """The fused estimate of the person's position (NED)."""
+    """The fused estimate of the person's position (NED) at ``header.t_measurement_ns``: the capture time of
+    the newest detection fused (a receiver predicts to its own time with ``velocity_ned_m_s``); ``status``
+    is as of ``header.t_sent_ns``."""
 
     SCHEMA_VERSION: ClassVar[int] = 1
     position_ned_m: tuple[float, float, float]

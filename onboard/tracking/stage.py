@@ -255,9 +255,14 @@ class TrackingStage:
         return self.filter.estimate(max(int(t_ns), st[2]))
 
     def target_message(self, t_ns: int) -> TargetEstimate | None:
-        est = self.estimate(t_ns)
-        if est is None:
+        """The estimate to publish at t_ns: position/velocity at the newest fused detection's capture time
+        (``header.t_measurement_ns``, the time of measurement; receivers predict to their own time with the
+        velocity), status as of t_ns; None without a track."""
+        now = self.estimate(t_ns)
+        if now is None:
             return None
+        est = self.filter.estimate(self.filter.state[2])
+        est = dataclasses.replace(est, status=now.status, num_sources=now.num_sources)
         self._seq += 1
         msg = est.to_message(self.drone_id, self._seq)
         if self.last_plan is not None and self.last_plan.search:
