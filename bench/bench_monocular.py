@@ -26,7 +26,7 @@ import torch  # noqa: E402
 
 torch.set_num_threads(1)
 
-from reconstruction.monocular.ba import bundle_adjust  # noqa: E402
+from reconstruction.monocular.ba import BAConfig, bundle_adjust  # noqa: E402
 from reconstruction.monocular.dictionary import load_dictionary  # noqa: E402
 from reconstruction.monocular.evaluate import EvalSetup, load_motion, make_view  # noqa: E402
 from reconstruction.monocular.perspective import orthographic_to_world, perspective_bundle_adjust  # noqa: E402
@@ -62,7 +62,7 @@ def main() -> int:
         raise SystemExit(f"motion {args.motion} not found; pass --motion FILE.bvh (CMU CC_Base rig)")
     W, conf = view.W_px[: args.frames], view.confidence[: args.frames]
     T = W.shape[0]
-    cfg = MonocularConfig(ablation_no_articulation=False)
+    cfg = MonocularConfig(ablation_no_articulation=False, ablation_paper_order=False)
     res = reconstruct_monocular(W, conf, d, cfg)
     rows = []
     ti = []
@@ -72,9 +72,10 @@ def main() -> int:
         ti.append(time.perf_counter() - t0)
     rows.append(("tracks + single-frame init", min(ti), len(res.ba.objective) - 1))
     for name, bcfg in [
-        ("BA (paper, gamma=1)", cfg.ba),
+        ("BA (default: warm-up, adult L)", cfg.ba),
+        ("BA (paper order, gamma=1)", BAConfig.paper()),
         ("BA w/o articulation (gamma=0)", dataclasses.replace(cfg.ba, gamma=0.0)),
-        ("BA extended (smooth S, R)", dataclasses.replace(cfg.ba, smooth_S=0.5, smooth_R=0.5)),
+        ("BA extended (smooth S, R)", BAConfig.paper(smooth_S=0.5, smooth_R=0.5)),
     ]:
         tb = []
         for _ in range(args.repeat):
@@ -96,6 +97,7 @@ def main() -> int:
     rows.append(("BA perspective (1 start, torch)", min(tp), rp.iterations))
     print(f"machine: {_cpu()}, {os.cpu_count()} CPUs (shared), numpy {np.__version__}, BLAS threads 1, torch {torch.__version__} threads 1")
     print(f"clip: {src}, {T} frames, 17 joints, dictionary K={d.num_bases}; best of {args.repeat}")
+    print(f"load average (1, 5, 15 min) at the end: {os.getloadavg()}")
     print(f"{'stage':<34}{'seconds':>9}{'ms/frame':>10}{'iters':>7}")
     for name, s, it in rows:
         print(f"{name:<34}{s:>9.3f}{1000 * s / T:>10.2f}{it:>7}")

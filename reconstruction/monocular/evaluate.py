@@ -143,6 +143,9 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
     out["pa_mpjpe_mm_ba"], out["per_joint_mm"] = _score(res.ba.S, view.gt_ned_m)
     if res.ba_no_articulation is not None:
         out["pa_mpjpe_mm_ba_no_articulation"], _ = _score(res.ba_no_articulation.S, view.gt_ned_m)
+    out["ba_warmup_accepted"] = res.ba.warmup_accepted
+    if res.ba_paper is not None:
+        out["pa_mpjpe_mm_ba_paper_order"], _ = _score(res.ba_paper.S, view.gt_ned_m)
     if res.ba_extended is not None:
         out["pa_mpjpe_mm_ba_extended"], out["per_joint_mm_extended"] = _score(res.ba_extended.S, view.gt_ned_m)
     if res.ba_extended is not None and cfg.perspective:

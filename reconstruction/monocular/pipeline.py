@@ -7,12 +7,15 @@
 2. single-frame initialisation (:func:`reconstruction.monocular.single_frame.initialise`), which also
    flags keypoints inconsistent with the dictionary pose as outliers;
 3. multi-frame bundle adjustment (:func:`reconstruction.monocular.ba.bundle_adjust`), the paper's
-   objective (``variant="paper"``) or the extended one (``variant="extended"``: temporal smoothness of
+   objective (``variant="paper"``; by default with the adaptive articulation warm-up of
+   :class:`reconstruction.monocular.ba.BAConfig`; the paper's exact update order is ``BAConfig.paper()``,
+   also run as an ablation) or the extended one (``variant="extended"``: temporal smoothness of
    poses and rotations, and, when the drone's camera attitude ``T_world_cam`` is given, a prior pulling
    R_t to it, with the poses expressed in the world frame);
 4. optionally (``perspective=True``, needs the camera poses and intrinsics) the perspective BA of
-   :mod:`reconstruction.monocular.perspective` in the world frame (NED metres), started from the paper
-   BA and from the extended BA placed in the world, keeping the lower objective.
+   :mod:`reconstruction.monocular.perspective` in the world frame (NED metres), started from the BA, the
+   paper-order BA (when the default differs from it) and the extended BA placed in the world, keeping the
+   lowest objective.
 
 Poses come back in the orthographic camera's pixel units; :func:`to_world_metric` places them in the
 world (NED, metres) using the camera poses and an assumed body size.
@@ -69,6 +72,8 @@ class MonocularConfig:
     extension: ExtensionConfig = dataclasses.field(default_factory=ExtensionConfig)
     perspective: PerspectiveConfig = dataclasses.field(default_factory=PerspectiveConfig)
     ablation_no_articulation: bool = True  # also run BA with gamma = 0 (the paper's "BA w/o art.")
+    ablation_paper_order: bool = True  # also run the paper's BA exactly (gamma from the start, L by SVD) when the
+    # default BA differs from it (adaptive gamma warm-up, adult-proportion L; see BAConfig)
 
 
 @dataclasses.dataclass
@@ -83,6 +88,7 @@ class MonocularResult:
     ba_extended_frame: str = "canonical"  # "world" when the attitude prior was used
     ba_perspective: PerspectiveResult | None = None  # world joints (needs camera poses and K)
     perspective_seconds: float = 0.0
+    ba_paper: BAResult | None = None  # the paper's BA exactly (BAConfig.paper); None unless the default differs
 
 
 def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
@@ -120,7 +126,7 @@ def reconstruct_monocular(
         extended: also run the extended BA.
         K: (3, 3) or (T, 3, 3) intrinsics (for the perspective BA).
         perspective: also run the perspective BA in the world frame (needs ``T_world_cam`` and ``K``),
-            started from the paper BA placed in the world (:mod:`reconstruction.monocular.perspective`).
+            started from the orthographic BAs placed in the world (:mod:`reconstruction.monocular.perspective`).
         dt_s: frame period (perspective BA's smoothness) when ``t_ns`` is not given.
         t_ns: (T,) frame times (ns): the perspective BA's smoothness then uses the true (uneven) intervals.
     """
@@ -145,10 +151,17 @@ def reconstruct_monocular(
     ba0 = None
     if cfg.ablation_no_articulation:
         ba0 = bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, dataclasses.replace(cfg.ba, gamma=0.0))
+    ba_paper = None
+    paper_cfg = dataclasses.replace(cfg.ba, warmup_iters=0, L_update="svd")
+    if cfg.ablation_paper_order and paper_cfg != cfg.ba:
+        # a discarded warm-up already ran the paper's BA from the init (identical result)
+        same = ba.warmup_accepted is False or (ba.warmup_accepted is None and cfg.ba.L_update == "svd")
+        ba_paper = ba if same else bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, paper_cfg)
     ext, frame = None, "canonical"
     if extended:
         e = cfg.extension
-        bcfg = dataclasses.replace(cfg.ba, smooth_S=e.smooth_S, smooth_R=e.smooth_R)
+        # the extended BA keeps the paper's update order (its figures were measured so; warm-up not tried there)
+        bcfg = dataclasses.replace(paper_cfg, smooth_S=e.smooth_S, smooth_R=e.smooth_R)
         if T_world_cam is not None:
             S0, R_prior = _world_frame_start(init, np.asarray(T_world_cam, dtype=float))
             ext = bundle_adjust(
@@ -167,10 +180,11 @@ def reconstruct_monocular(
         Kf = np.asarray(K, dtype=float)
         pc = cfg.perspective
         place = dict(limbs=dictionary.limbs, bone_rms_m=pc.body_bone_rms_m)  # size from the bones: posture-free
-        starts = [orthographic_to_world(ba.S, ba.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, **place)]
+        bases = [ba] + ([ba_paper] if ba_paper is not None and ba_paper is not ba else [])
+        starts = [orthographic_to_world(b.S, b.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, **place) for b in bases]
         if ext is not None:
             starts.append(orthographic_to_world(ext.S, ext.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, frame=frame, **place))
-        # multi-start (paper BA, extended BA placed in the world): keep the lowest objective
+        # multi-start (BA, the paper-order BA when it differs, extended BA placed in the world): lowest objective
         t_s = None if t_ns is None else (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9
         runs = [perspective_bundle_adjust(W_px, w, T_wc, Kf, X0, dictionary.limbs, dt_s=dt_s, cfg=cfg.perspective, t_s=t_s)
                 for X0 in starts]  # fmt: skip
@@ -178,7 +192,7 @@ def reconstruct_monocular(
         persp_s = time.perf_counter() - t0
     return MonocularResult(
         init=init, ba=ba, ba_no_articulation=ba0, ba_extended=ext, weights=w, init_seconds=init_s, ba_seconds=ba_s,
-        ba_extended_frame=frame, ba_perspective=persp, perspective_seconds=persp_s,
+        ba_extended_frame=frame, ba_perspective=persp, perspective_seconds=persp_s, ba_paper=ba_paper,
     )  # fmt: skip
 
 

@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from reconstruction.monocular.ba import BAConfig, _Problem, bundle_adjust, squared_limb_lengths
+from reconstruction.monocular.ba import (
+    BAConfig,
+    _Problem,
+    bundle_adjust,
+    limb_index_arrays,
+    prior_limb_proportions,
+    proportion_inconsistency,
+    rank1_fixed_proportions,
+    squared_limb_lengths,
+)
 from reconstruction.monocular.dictionary import (
     DEFAULT_DICTIONARY,
     PoseDictionary,
@@ -262,9 +271,10 @@ def test_bundle_adjust_decreases_objective_monotonically(dictionary):
     R0 = polar_2x3(R + 0.05 * rng.normal(size=R.shape))
     w = np.ones((T, 17))
     for cfg in (
-        BAConfig(gamma=1.0, outer_iters=25, tol=0.0),
+        BAConfig.paper(gamma=1.0, outer_iters=25, tol=0.0),
         BAConfig(gamma=0.0, outer_iters=25, tol=0.0),
-        BAConfig(gamma=1.0, outer_iters=25, tol=0.0, smooth_S=0.5, smooth_R=0.5, rot_prior=1.0),
+        BAConfig.paper(gamma=1.0, outer_iters=25, tol=0.0, smooth_S=0.5, smooth_R=0.5, rot_prior=1.0),
+        BAConfig(gamma=1.0, outer_iters=25, tol=0.0, warmup_iters=0, L_update="prior"),  # adult-proportion L
     ):
         res = bundle_adjust(W, w, S0, R0, COCO17_LIMBS, cfg, R_prior=R)
         F = res.objective
@@ -294,3 +304,104 @@ def test_stiefel_newton_step_never_increases_and_beats_mm():
         prev = cur
     np.testing.assert_allclose(Rn @ np.swapaxes(Rn, 1, 2), np.broadcast_to(np.eye(2), (200, 2, 2)), atol=1e-9)
     assert np.mean(stiefel_quadratic(Rn, A, C)) < np.mean(stiefel_quadratic(Rm, A, C))
+
+
+# ---------------------------------------------------------------- adult-proportion L, articulation warm-up
+
+
+def _adult_skeleton_sequence(T=9, seed=5):
+    """Poses (T, 3, 17) whose prior limbs have exactly the adult bone lengths, at per-frame scales."""
+    from reconstruction.monocular.perspective import ADULT_BONES_M
+
+    rng = np.random.default_rng(seed)
+    face = rng.normal(scale=0.05, size=(5, 3)) + [0.18, -0.2, 0.0]  # rigid head (face limbs: constant too)
+    parent = {7: 5, 9: 7, 8: 6, 10: 8, 13: 11, 15: 13, 14: 12, 16: 14}
+    out = []
+    for t in range(T):
+        X = np.zeros((17, 3))
+        X[5], X[6] = [-0.18, -0.5, 0.0], [0.18, -0.5, 0.05]
+        X[6] = X[5] + ADULT_BONES_M[(5, 6)] * (X[6] - X[5]) / np.linalg.norm(X[6] - X[5])
+        X[11] = X[5] + ADULT_BONES_M[(5, 11)] * np.array([0.02, 1.0, 0.0]) / np.hypot(0.02, 1.0)
+        # right hip: at the hip width from 11 and the flank length from 6
+        a, b = X[11], X[6]
+        d = np.linalg.norm(b - a)
+        r1, r2 = ADULT_BONES_M[(11, 12)], ADULT_BONES_M[(6, 12)]
+        x = (d * d + r1 * r1 - r2 * r2) / (2 * d)
+        e = (b - a) / d
+        n = np.cross(e, [0.0, 0.0, 1.0])
+        n /= np.linalg.norm(n)
+        X[12] = a + x * e + np.sqrt(max(r1 * r1 - x * x, 0.0)) * n
+        for j in (7, 9, 8, 10, 13, 15, 14, 16):
+            v = rng.normal(size=3)
+            X[j] = X[parent[j]] + ADULT_BONES_M[(parent[j], j)] * v / np.linalg.norm(v)
+        X[:5] = X[5] + face
+        out.append((0.5 + rng.random()) * X.T)
+    return np.stack(out)
+
+
+def test_rank1_fixed_proportions_exact_and_least_squares():
+    S = _adult_skeleton_sequence()
+    a, b = limb_index_arrays(COCO17_LIMBS)
+    u, known = prior_limb_proportions(COCO17_LIMBS)
+    assert known.sum() == 12 and not known[12:].any()  # face limbs are not in the prior
+    ell = squared_limb_lengths(S, a, b)
+    ratio = ell[known] / u[known, None]  # the fixture: every prior limb at the adult length x the frame's scale
+    np.testing.assert_allclose(ratio, np.broadcast_to(ratio[:1], ratio.shape), rtol=1e-9)
+    L = rank1_fixed_proportions(ell, u, known)
+    np.testing.assert_allclose(L, ell, rtol=1e-9)  # adult proportions at any scale (rigid face): exact
+    assert np.linalg.matrix_rank(L, tol=1e-9 * np.abs(L).max()) == 1
+    assert proportion_inconsistency(S, COCO17_LIMBS) < 1e-9
+    # a stretched forearm: the fit is the least-squares one over v (hand check: v_t = <u, l_t> / ||u||^2)
+    S2 = S.copy()
+    S2[:, :, 9] = S2[:, :, 7] + 1.5 * (S2[:, :, 9] - S2[:, :, 7])
+    ell2 = squared_limb_lengths(S2, a, b)
+    L2 = rank1_fixed_proportions(ell2[known], u[known], np.ones(12, dtype=bool))
+    v = u[known] @ ell2[known] / (u[known] @ u[known])
+    np.testing.assert_allclose(L2, np.outer(u[known], v), rtol=1e-12)
+    assert proportion_inconsistency(S2, COCO17_LIMBS) > 0.05
+    # the free (face) rows never make the fit worse than the first v-only step
+    L3 = rank1_fixed_proportions(ell2, u, known, sweeps=5)
+    L1 = rank1_fixed_proportions(ell2, u, known, sweeps=1)
+    assert np.linalg.norm(ell2 - L3) <= np.linalg.norm(ell2 - L1) + 1e-12
+
+
+def test_warmup_accept_reject_and_paper_fallback(dictionary):
+    S, R, W = _noisy_orthographic_sequence(dictionary)
+    T = W.shape[0]
+    rng = np.random.default_rng(13)
+    S0 = S + 0.05 * rng.normal(size=S.shape)
+    R0 = polar_2x3(R + 0.05 * rng.normal(size=R.shape))
+    w = np.ones((T, 17))
+    paper = bundle_adjust(W, w, S0, R0, COCO17_LIMBS, BAConfig.paper(outer_iters=15, tol=0.0))
+    assert paper.warmup_accepted is None
+    # impossible acceptance ratio: the warm-up is discarded and the result is exactly the paper's BA
+    rej = bundle_adjust(W, w, S0, R0, COCO17_LIMBS, BAConfig(outer_iters=15, tol=0.0, warmup_iters=5, warmup_accept_ratio=1e-12))
+    assert rej.warmup_accepted is False
+    np.testing.assert_array_equal(rej.S, paper.S)
+    np.testing.assert_array_equal(rej.objective, paper.objective)
+    # always accepted: gamma = 0 history (warm-up), then the articulated run; each monotone
+    acc = bundle_adjust(W, w, S0, R0, COCO17_LIMBS,
+                        BAConfig(tol=0.0, warmup_iters=5, warmup_accept_ratio=0.0, warmup_outer_iters=10))  # fmt: skip
+    assert acc.warmup_accepted is True
+    F = acc.objective
+    assert len(F) == 6 + 11
+    assert np.all(np.diff(F[:6]) <= 1e-9 * F[0]) and np.all(np.diff(F[6:]) <= 1e-9 * F[6])
+    assert F[6] >= F[5]  # switching gamma on adds the non-negative articulation term
+    # the warm-up is pure gamma = 0 BA: same poses as running it alone
+    g0 = bundle_adjust(W, w, S0, R0, COCO17_LIMBS, BAConfig(gamma=0.0, outer_iters=5, tol=0.0))
+    np.testing.assert_allclose(F[:6], g0.objective)
+
+
+def test_pipeline_runs_paper_order_ablation(dictionary):
+    from reconstruction.monocular.pipeline import MonocularConfig, reconstruct_monocular
+
+    S, R, W = _noisy_orthographic_sequence(dictionary, noise=0.5)
+    W = 200.0 * W + 500.0  # pixels
+    cfg = MonocularConfig()
+    cfg.ba.warmup_accept_ratio = 0.0  # always keep the warm-up: the default then differs from the paper's BA
+    res = reconstruct_monocular(W, None, dictionary, cfg)
+    assert res.ba.warmup_accepted is True and res.ba_paper is not None and res.ba_paper is not res.ba
+    ref = bundle_adjust(W, res.weights, res.init.S, res.init.R, dictionary.limbs, BAConfig.paper())
+    np.testing.assert_array_equal(res.ba_paper.S, ref.S)
+    cfg.ba = BAConfig.paper()  # the paper's own config: no duplicate run
+    assert reconstruct_monocular(W, None, dictionary, cfg).ba_paper is None
