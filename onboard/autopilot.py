@@ -65,6 +65,7 @@ class MavsdkAutopilot:
             "battery_v": 0.0,
             "lat": math.nan, "lon": math.nan, "alt_amsl": math.nan,
             "fix": 0, "sats": 0,
+            "h_acc_m": math.nan, "v_acc_m": math.nan,  #: the receiver's position uncertainty (1 sigma), RAW_GPS
             "health_ok": False,
             "pos": None, "vel": (0.0, 0.0, 0.0),
         }
@@ -145,6 +146,11 @@ class MavsdkAutopilot:
         def gps(v):
             T["fix"], T["sats"] = int(v.fix_type), int(v.num_satellites)
 
+        def raw_gps(v):
+            h, vv = float(v.horizontal_uncertainty_m), float(v.vertical_uncertainty_m)
+            T["h_acc_m"] = h if math.isfinite(h) and 0 < h < 90 else math.nan
+            T["v_acc_m"] = vv if math.isfinite(vv) and 0 < vv < 90 else math.nan
+
         def health(v):
             T["health_ok"] = bool(v.is_global_position_ok and v.is_home_position_ok and v.is_armable)
 
@@ -152,6 +158,7 @@ class MavsdkAutopilot:
             (tel.subscribe_attitude_quaternion, q), (tel.subscribe_armed, armed), (tel.subscribe_in_air, in_air),
             (tel.subscribe_landed_state, landed), (tel.subscribe_flight_mode, mode), (tel.subscribe_battery, battery),
             (tel.subscribe_position, position), (tel.subscribe_gps_info, gps), (tel.subscribe_health, health),
+            (tel.subscribe_raw_gps, raw_gps),
             (tel.subscribe_position_velocity_ned, self._on_posvel),
         ]
         for sub, cb in subs:
@@ -190,9 +197,13 @@ class MavsdkAutopilot:
         T["vel"] = (vel.north_m_s, vel.east_m_s, vel.down_m_s)
         self._seq += 1
         q = T["q"] if all(math.isfinite(x) for x in T["q"]) else (1.0, 0.0, 0.0, 0.0)
+        extra = {}
+        if math.isfinite(T["h_acc_m"]) and math.isfinite(T["v_acc_m"]):
+            # the receiver's reported accuracy (GPS ~1 m, RTK ~cm); without it the message's default (1 m^2)
+            extra["position_cov_m2"] = (T["h_acc_m"] ** 2, T["h_acc_m"] ** 2, T["v_acc_m"] ** 2)
         st = VehicleState(
             header=VehicleState.make_header(self.drone_id, now_ns(), self._seq),
-            position_ned_m=T["pos"], velocity_ned_m_s=T["vel"], q_world_body=q,
+            position_ned_m=T["pos"], velocity_ned_m_s=T["vel"], q_world_body=q, **extra,
             latitude_deg=_finite(T["lat"]), longitude_deg=_finite(T["lon"]), altitude_amsl_m=_finite(T["alt_amsl"]),
             gps_fix_type=T["fix"], gps_num_satellites=T["sats"],
             battery_remaining_frac=T["battery_frac"], battery_voltage_v=T["battery_v"],

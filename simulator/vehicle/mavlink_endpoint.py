@@ -299,8 +299,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
                 cog,
                 sats,
                 int(round(alt * 1000)),
-                500 if v.gps_ok else 99000,
-                800 if v.gps_ok else 99000,
+                # h_acc / v_acc (mm): the estimator's position error grade (1 sigma), as a receiver reports it
+                int(round(1000 * v.cfg.estimator.pos_bias_std_xy_m)) if v.gps_ok else 99000,
+                int(round(1000 * v.cfg.estimator.pos_bias_std_z_m)) if v.gps_ok else 99000,
                 150,
                 0,
                 0,

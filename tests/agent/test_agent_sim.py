@@ -89,6 +89,9 @@ def test_agent_flies_orbit_refuses_bad_input_and_lands(flight):
     states = log.read_topic("state", VehicleState)
     t = np.array([s.header.t_measurement_ns for s in states]) * 1e-9
     assert len(states) / (t[-1] - t[0]) > 45.0, "state must be recorded at ~50 Hz"
+    # the position covariance is the receiver's reported accuracy (GPS_RAW_INT h_acc / v_acc via MAVSDK's
+    # RawGps): the estimator grade set above (0.05 m), not the message's 1 m^2 default
+    np.testing.assert_allclose(states[-1].position_cov_m2, (0.05**2, 0.05**2, 0.05**2), rtol=0.02)
     assert counts.get("gcs/cmd", 0) >= 5 and counts.get("ack", 0) >= 8 and counts.get("gcs/plan", 0) >= 3
     acks = log.read_topic("ack", CommandAck)
     assert any(a.result == "refused" and "stale" in a.reason for a in acks)
