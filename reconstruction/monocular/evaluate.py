@@ -187,7 +187,8 @@ def sweep(motions: list, cfg: EvalMonocularConfig, omegas_deg_s: list[float], pr
 def sweep_means(rows: list[dict]) -> dict:
     """Mean over motions per angular velocity: {key: (omegas, values)}."""
     omegas = sorted({r["angular_velocity_deg_s"] for r in rows})
-    keys = ["pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_no_articulation", "pa_mpjpe_mm_ba_extended",
+    keys = ["pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_paper_order", "pa_mpjpe_mm_ba_no_articulation",
+            "pa_mpjpe_mm_ba_extended",
             "pa_mpjpe_mm_ba_perspective", "mpjpe_mm_ba_perspective"]
     out = {"angular_velocity_deg_s": omegas}
     for k in keys:
@@ -209,7 +210,8 @@ def plot_sweep(means: dict, path: str | Path, title: str = "") -> Path:
     for k, lab, st in [
         ("pa_mpjpe_mm_init", "Initial", "o--"),
         ("pa_mpjpe_mm_ba_no_articulation", "BA w/o art.", "s-"),
-        ("pa_mpjpe_mm_ba", "BA", "^-"),
+        ("pa_mpjpe_mm_ba_paper_order", "BA (paper's update order)", "x--"),
+        ("pa_mpjpe_mm_ba", "BA (articulation warm-up)", "^-"),
         ("pa_mpjpe_mm_ba_extended", "BA extended (ours)", "d:"),
         ("pa_mpjpe_mm_ba_perspective", "BA perspective, known cameras (ours)", "v-"),
     ]:
