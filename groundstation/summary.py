@@ -129,11 +129,13 @@ def min_pairwise_distance_m(pos_ned_m: np.ndarray) -> float:
     return best
 
 
-def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t_s (T,), positions (D, T, 3), yaw_rad (D, T)) of the drones from the simulator truth."""
+def read_sim_truth(path: str | Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The simulator truth (``truth.mcap``, SimTruth) of the samples that hold every drone of ``drone_ids``,
+    in time order: (t_ns (T,) int64, person root (T, 3), drone positions (T, D, 3), drone yaw_rad (T, D)),
+    world NED; T = 0 when there is none (the caller says what it needed)."""
     from onboard.flightlog import FlightLog
 
-    ts, rows, yaws = [], [], []
+    ts, person, pos, yaw = [], [], [], []
     for m in FlightLog(path).messages():
         msg = m.msg
         if not isinstance(msg, SimTruth):
@@ -141,14 +143,22 @@ def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarra
         by_id = {v.drone_id: v for v in msg.vehicles}
         if not all(d in by_id for d in drone_ids):
             continue
-        ts.append(msg.header.t_measurement_ns * 1e-9)
-        rows.append([by_id[d].position_ned_m for d in drone_ids])
-        yaws.append([_yaw_of_q(by_id[d].q_world_body) for d in drone_ids])
-    if not ts:
+        ts.append(msg.header.t_measurement_ns)
+        person.append(msg.person_root_ned_m)
+        pos.append([by_id[d].position_ned_m for d in drone_ids])
+        yaw.append([_yaw_of_q(by_id[d].q_world_body) for d in drone_ids])
+    o = np.argsort(ts)
+    D = len(drone_ids)
+    return (np.asarray(ts, dtype=np.int64)[o], np.asarray(person, dtype=float).reshape(-1, 3)[o],
+            np.asarray(pos, dtype=float).reshape(-1, D, 3)[o], np.asarray(yaw, dtype=float).reshape(-1, D)[o])
+
+
+def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_s (T,), positions (D, T, 3), yaw_rad (D, T)) of the drones from the simulator truth."""
+    t_ns, _, pos, yaw = read_sim_truth(path, drone_ids)
+    if not len(t_ns):
         raise SummaryError(f"{path} holds no simulator truth for {drone_ids}")
-    order = np.argsort(ts)
-    return (np.asarray(ts)[order], np.transpose(np.asarray(rows, dtype=float)[order], (1, 0, 2)),
-            np.asarray(yaws, dtype=float)[order].T)
+    return t_ns * 1e-9, np.transpose(pos, (1, 0, 2)), yaw.T
 
 
 def _yaw_of_q(q_wxyz) -> float:
@@ -359,23 +369,10 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
     flight_dir = Path(flight_dir)
     plan = load_plan(flight_dir / "plan.json")
     drone_ids = sorted(plan.phase_offset_rad, key=lambda d: (len(d), d))
-    tt, person, vpos = [], [], []
-    for m in FlightLog(flight_dir / "truth.mcap").messages():
-        msg = m.msg
-        if not isinstance(msg, SimTruth):
-            continue
-        by_id = {v.drone_id: v for v in msg.vehicles}
-        if not all(d in by_id for d in drone_ids):
-            continue
-        tt.append(msg.header.t_measurement_ns * 1e-9)
-        person.append(msg.person_root_ned_m)
-        vpos.append([by_id[d].position_ned_m for d in drone_ids])
-    if not tt:
+    tt, person, vpos, _ = read_sim_truth(flight_dir / "truth.mcap", drone_ids)  # vpos: (T, D, 3)
+    if not len(tt):
         raise SummaryError(f"{flight_dir / 'truth.mcap'} holds no simulator truth")
-    o = np.argsort(tt)
-    tt = np.asarray(tt)[o]
-    person = np.asarray(person, dtype=float)[o]
-    vpos = np.asarray(vpos, dtype=float)[o]  # (T, D, 3)
+    tt = tt * 1e-9
     t_land = math.inf
     per = {}
     t_tracking_all = []

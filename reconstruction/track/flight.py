@@ -324,24 +324,12 @@ def load_refined_offsets(flight_dir: str | Path) -> dict[str, tuple[np.ndarray, 
 # ------------------------------------------------------------------------------------------------ evaluation
 def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns (T,), person root (T, 3), drone positions (T, D, 3)) from the simulator truth."""
-    from onboard.flightlog import FlightLog
-    from shared_msgs.messages import SimTruth
+    from groundstation.summary import read_sim_truth
 
-    ts, person, veh = [], [], []
-    for m in FlightLog(path).messages():
-        msg = m.msg
-        if not isinstance(msg, SimTruth):
-            continue
-        by_id = {v.drone_id: v for v in msg.vehicles}
-        if not all(d in by_id for d in drone_ids):
-            continue
-        ts.append(msg.header.t_measurement_ns)
-        person.append(msg.person_root_ned_m)
-        veh.append([by_id[d].position_ned_m for d in drone_ids])
+    ts, person, veh, _ = read_sim_truth(path, drone_ids)
     if len(ts) < 2:
         raise SmootherError(f"{path} holds no simulator truth for {drone_ids}")
-    o = np.argsort(ts)
-    return np.asarray(ts, dtype=np.int64)[o], np.asarray(person, dtype=float)[o], np.asarray(veh, dtype=float)[o]
+    return ts, person, veh
 
 
 def _interp(tq: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
