@@ -202,6 +202,25 @@ def _bearing_point(edges: np.ndarray, c: np.ndarray, R_wc: np.ndarray, K_inv: np
     return c + range_m * r / np.linalg.norm(r)
 
 
+#: the inputs of a measurement model, in Jacobian column order: 4 box edges (px), person height (m), camera
+#: position (3, m), camera rotation (3, rad, world frame), ground height (m); and the central-difference steps
+_EDGES, _HEIGHT, _GROUND = [0, 1, 2, 3], 4, 11
+_STEPS = np.array([0.5] * 4 + [0.01] + [0.01] * 3 + [1e-4] * 3 + [0.01])
+
+
+def _jacobian(model, edges: np.ndarray, H: float, cols=range(12)) -> np.ndarray:
+    """(3, len(cols)) central-difference Jacobian of ``model(e, h, dc, dth, g)`` at (edges, H, 0, 0, 0) over
+    the input columns ``cols`` (see :data:`_STEPS`)."""
+    J = np.zeros((3, len(cols)))
+    for j, i in enumerate(cols):
+        dp = np.zeros(12)
+        dp[i] = _STEPS[i]
+        args_p = (edges + dp[:4], H + dp[4], dp[5:8], dp[8:11], dp[11])
+        args_m = (edges - dp[:4], H - dp[4], -dp[5:8], -dp[8:11], -dp[11])
+        J[:, j] = (model(*args_p) - model(*args_m)) / (2 * _STEPS[i])
+    return J
+
+
 def measurement_from_box(
     box: BoundingBox | np.ndarray,
     intrinsics: CameraIntrinsics,
@@ -267,18 +286,16 @@ def measurement_from_box(
             mode = "height_prior"  # the feet cannot be put on the ground from here: height prior alone
     if mode == "height_and_ground":
         # information weights of the two range estimates, from their own spreads (edges + height / ground)
-        def jac(f, n_extra):
-            Jf = np.zeros((3, 4 + n_extra))
-            for i in range(4 + n_extra):
-                d = np.zeros(4 + n_extra)
-                d[i] = 0.5 if i < 4 else 0.01
-                Jf[:, i] = (f(edges + d[:4], *(d[4:] )) - f(edges - d[:4], *(-d[4:]))) / (2 * d[i])
-            return Jf
+        def model_h(e, h, dc, dth, g=0.0):
+            return _height_prior_point(e, h, c0 + dc, R0, K_inv, config.min_vertical_parallax_rad)
 
-        Jh = jac(lambda e, dh: _height_prior_point(e, H + dh, c0, R0, K_inv, config.min_vertical_parallax_rad), 1)
-        Jg = jac(lambda e, dg: _ground_point(e, H, dg, c0, R0, K_inv, ground_down_m), 1)
-        C_h = Jh @ np.diag([*np.maximum(ev, config.min_edge_var_px2), config.person_height_sigma_m**2]) @ Jh.T
-        C_g = Jg @ np.diag([*np.maximum(ev, config.min_edge_var_px2), config.ground_sigma_m**2]) @ Jg.T
+        def model_g(e, h, dc, dth, g=0.0):
+            return _ground_point(e, H, g, c0 + dc, R0, K_inv, ground_down_m)
+
+        Jh = _jacobian(model_h, edges, H, _EDGES + [_HEIGHT])
+        Jg = _jacobian(model_g, edges, H, _EDGES + [_GROUND])
+        C_h = Jh @ np.diag([*ev, config.person_height_sigma_m**2]) @ Jh.T
+        C_g = Jg @ np.diag([*ev, config.ground_sigma_m**2]) @ Jg.T
         # the ground point's vertical is the height prior's (centre = feet + H/2): give it the height spread too
         C_g = C_g + np.diag([0.0, 0.0, (0.5 * config.person_height_sigma_m) ** 2])
         reg = 1e-6 * np.eye(3)
@@ -323,15 +340,7 @@ def measurement_from_box(
         if (R0.T @ (p - c0))[2] <= 0:
             raise MeasurementError("the measured person lies behind the camera; check T_world_cam")
 
-    # Jacobian by central differences over (4 edges, height, 3 cam position, 3 cam rotation, ground height)
-    steps = np.array([0.5] * 4 + [0.01] + [0.01] * 3 + [1e-4] * 3 + [0.01])
-    J = np.zeros((3, 12))
-    for i, s in enumerate(steps):
-        dp = np.zeros(12)
-        dp[i] = s
-        args_p = (edges + dp[:4], H + dp[4], dp[5:8], dp[8:11], dp[11])
-        args_m = (edges - dp[:4], H - dp[4], -dp[5:8], -dp[8:11], -dp[11])
-        J[:, i] = (model(*args_p) - model(*args_m)) / (2 * s)
+    J = _jacobian(model, edges, H)
     if mode == "bearing":
         J[:, 4] = 0.0
     Sigma_in = np.zeros((12, 12))
