@@ -17,7 +17,7 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
-import platform  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -32,18 +32,11 @@ from reconstruction.monocular.evaluate import EvalSetup, load_motion, make_view 
 from reconstruction.monocular.perspective import orthographic_to_world, perspective_bundle_adjust  # noqa: E402
 from reconstruction.monocular.pipeline import reconstruct_monocular, MonocularConfig  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe_machine  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_MOTION = REPO.parent / "shared" / "data" / "mocap" / "cmu" / "002" / "002_10.bvh"
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def main() -> int:
@@ -95,7 +88,7 @@ def main() -> int:
         rp = perspective_bundle_adjust(W, res.weights, T_wc, view.K, X0, d.limbs, cfg=pc, t_s=t_s)
         tp.append(time.perf_counter() - t0)
     rows.append(("BA perspective (1 start, torch)", min(tp), rp.iterations))
-    print(f"machine: {_cpu()}, {os.cpu_count()} CPUs (shared), numpy {np.__version__}, BLAS threads 1, torch {torch.__version__} threads 1")
+    print("machine:", describe_machine(f"numpy {np.__version__}", "BLAS threads 1", f"torch {torch.__version__} threads 1"))
     print(f"clip: {src}, {T} frames, 17 joints, dictionary K={d.num_bases}; best of {args.repeat}")
     print(f"load average (1, 5, 15 min) at the end: {os.getloadavg()}")
     print(f"{'stage':<34}{'seconds':>9}{'ms/frame':>10}{'iters':>7}")
