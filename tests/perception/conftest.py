@@ -54,3 +54,30 @@ def grace_hopper() -> np.ndarray:
 def astronaut() -> np.ndarray:
     data = pytest.importorskip("skimage.data")
     return np.ascontiguousarray(data.astronaut()[..., ::-1])  # RGB -> BGR
+
+
+@pytest.fixture(scope="session")
+def sim_frame():
+    """A frame rendered by the simulator (simulator.scene): the person 10 m ahead, 2 m aside, 5 m below the
+    camera, which looks at the hips. Its ``T_world_cam`` is set as the attribute ``T_world_cam``."""
+    import math
+
+    from scipy.spatial.transform import Rotation
+
+    render = pytest.importorskip("simulator.scene.render")
+    from simulator.scene.camera import PinholeCamera, camera_pose
+    from simulator.scene.config import CameraConfig, PersonConfig
+    from simulator.scene.person import PersonSim
+
+    cfg = CameraConfig(lever_arm_body_m=[0.0, 0.0, 0.0])
+    cam = PinholeCamera.from_config(cfg)
+    state = PersonSim(PersonConfig()).state_at(4.0)
+    hip = state.joints_ned_m[[11, 12]].mean(0)
+    pos = hip + np.array([-10.0, 2.0, -5.0])  # 10 m behind, 2 m aside, 5 m up, looking at the hips
+    d = hip - pos
+    x, y, z, w = Rotation.from_euler("ZYX", [math.atan2(d[1], d[0]), 0.0, 0.0]).as_quat()
+    T = camera_pose(cfg, pos, (w, x, y, z), -math.atan2(d[2], math.hypot(d[0], d[1])))
+    frame = render.Renderer(cam, cfg, PersonConfig()).render(T, state.joints_ned_m)
+    assert frame.gt is not None and frame.gt.box_px is not None
+    frame.T_world_cam = np.asarray(T)
+    return frame

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import math
 import threading
 
-import numpy as np
 import pytest
 
 from onboard.detector.stage import DetectionWorker, FrameDecodeError, decode_frame, detections_from_frame
@@ -16,27 +14,13 @@ render = pytest.importorskip("simulator.scene.render")
 
 
 @pytest.fixture(scope="module")
-def rendered():
-    """(CameraFrame as the camera node sends it, GT box) of a person 10 m away, 5 m below the camera."""
-    from scipy.spatial.transform import Rotation
-
-    from simulator.scene.camera import PinholeCamera, camera_pose
-    from simulator.scene.config import CameraConfig, PersonConfig
-    from simulator.scene.person import PersonSim
-
-    cfg = CameraConfig(lever_arm_body_m=[0.0, 0.0, 0.0])
-    cam = PinholeCamera.from_config(cfg)
-    state = PersonSim(PersonConfig()).state_at(4.0)
-    hip = state.joints_ned_m[[11, 12]].mean(0)
-    pos = hip + np.array([-10.0, 2.0, -5.0])
-    d = hip - pos
-    x, y, z, w = Rotation.from_euler("ZYX", [math.atan2(d[1], d[0]), 0.0, 0.0]).as_quat()
-    T = camera_pose(cfg, pos, (w, x, y, z), -math.atan2(d[2], math.hypot(d[0], d[1])))
-    fr = render.Renderer(cam, cfg, PersonConfig()).render(T, state.joints_ned_m)
+def rendered(sim_frame):
+    """(CameraFrame of the simulator-rendered frame as the camera node sends it, GT box)."""
+    fr = sim_frame
     H, W = fr.image.shape[:2]
     msg = CameraFrame(header=CameraFrame.make_header("drone_1", 123_456_789, 7), camera_id="drone_1/cam0", frame_index=7,
                       encoding="jpeg", width_px=W, height_px=H, data=render.encode_jpeg(fr.image),
-                      T_world_cam=tuple(float(v) for v in np.asarray(T).reshape(-1)))
+                      T_world_cam=tuple(float(v) for v in fr.T_world_cam.reshape(-1)))
     return decode(encode(msg)), fr.gt.box_px
 
 

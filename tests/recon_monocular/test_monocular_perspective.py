@@ -18,13 +18,8 @@ from skycap.errors import SkycapError
 from skycap.frames import intrinsics_matrix
 from skycap.skeleton import COCO17_LIMBS
 
-#: an upright T-ish body (COCO-17, body frame x forward, y right, z down; metres), feet at z = 0
-_BODY = np.array([
-    [0.10, 0.00, -1.65], [0.12, -0.04, -1.68], [0.12, 0.04, -1.68], [0.05, -0.08, -1.66], [0.05, 0.08, -1.66],
-    [0.00, -0.19, -1.45], [0.00, 0.19, -1.45], [0.05, -0.30, -1.18], [-0.05, 0.30, -1.18],
-    [0.15, -0.33, -0.95], [0.05, 0.36, -0.93], [0.00, -0.10, -0.95], [0.00, 0.10, -0.95],
-    [0.10, -0.11, -0.50], [-0.05, 0.11, -0.50], [0.00, -0.12, -0.05], [-0.10, 0.12, -0.05],
-])  # fmt: skip
+from body_fixture import UPRIGHT_BODY
+
 
 
 def _scene(T=48, fps=24.0, omega_deg_s=30.0, yaw_rate_deg_s=20.0):
@@ -35,7 +30,7 @@ def _scene(T=48, fps=24.0, omega_deg_s=30.0, yaw_rate_deg_s=20.0):
     Rz = np.zeros((T, 3, 3))
     Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
     root = np.stack([0.8 * t, 0.2 * t, np.zeros(T)], -1)
-    X = np.einsum("tij,kj->tki", Rz, _BODY) + root[:, None]
+    X = np.einsum("tij,kj->tki", Rz, UPRIGHT_BODY) + root[:, None]
     centre = X.mean(1)
     ang = np.radians(omega_deg_s) * t
     cam = np.stack([centre[:, 0] + 4 * np.cos(ang), centre[:, 1] + 4 * np.sin(ang), np.full(T, -2.0)], -1)
@@ -47,14 +42,14 @@ def _scene(T=48, fps=24.0, omega_deg_s=30.0, yaw_rate_deg_s=20.0):
 
 
 def _body_bone_rms() -> float:
-    """RMS of _BODY's limb/torso bone lengths (the perspective BA's size reference)."""
-    return float(np.sqrt(np.mean(np.square([np.linalg.norm(_BODY[a] - _BODY[b]) for a, b in COCO17_LIMBS if min(a, b) >= 5]))))
+    """RMS of UPRIGHT_BODY's limb/torso bone lengths (the perspective BA's size reference)."""
+    return float(np.sqrt(np.mean(np.square([np.linalg.norm(UPRIGHT_BODY[a] - UPRIGHT_BODY[b]) for a, b in COCO17_LIMBS if min(a, b) >= 5]))))
 
 
 def _cfg(**kw):  # noqa: D103
-    r = float(np.sqrt(np.mean(np.sum((_BODY - _BODY.mean(0)) ** 2, -1))))
+    r = float(np.sqrt(np.mean(np.sum((UPRIGHT_BODY - UPRIGHT_BODY.mean(0)) ** 2, -1))))
     # exact cameras; the size and proportions priors are this body's (as if measured: they differ from the adult's)
-    bones = tuple(float(np.linalg.norm(_BODY[a] - _BODY[b])) for a, b in ADULT_BONES_M)
+    bones = tuple(float(np.linalg.norm(UPRIGHT_BODY[a] - UPRIGHT_BODY[b])) for a, b in ADULT_BONES_M)
     base = dict(body_rms_radius_m=r, body_bone_rms_m=_body_bone_rms(), bone_prior_m=bones, stages=2, iters_per_stage=150,
                 camera_sigma_deg=0.0)  # fmt: skip
     base.update(kw)
@@ -100,7 +95,7 @@ def test_orthographic_to_world_places_an_exact_orthographic_pose():
     S_cam = np.einsum("tij,tkj->tik", R_cw, X - X.mean(1, keepdims=True)) * 1500.0 / d[:, None, None]  # (T,3,J) px
     R = np.tile(np.eye(3)[:2], (len(X), 1, 1))
     assert np.allclose(complete_rotation(R), np.eye(3))
-    r0 = float(np.sqrt(np.mean(np.sum((_BODY - _BODY.mean(0)) ** 2, -1))))
+    r0 = float(np.sqrt(np.mean(np.sum((UPRIGHT_BODY - UPRIGHT_BODY.mean(0)) ** 2, -1))))
     Xw = orthographic_to_world(S_cam, R, W, np.ones(X.shape[:2]), T_wc, K, r0)
     # same shape exactly; the centre is on the 2D-centroid ray (perspective: a few cm off the 3D centroid)
     assert np.abs((Xw - Xw.mean(1, keepdims=True)) - (X - X.mean(1, keepdims=True))).max() < 1e-9

@@ -32,14 +32,9 @@ from skycap.bvh import read_bvh
 from skycap.errors import SkycapError
 from skycap.skeleton import COCO17_LIMBS, mocap_to_coco17
 
+from body_fixture import UPRIGHT_BODY
 
-#: an upright adult-sized body (COCO-17, metres, feet at z = 0), as in test_monocular_perspective
-_BODY = np.array([
-    [0.10, 0.00, -1.65], [0.12, -0.04, -1.68], [0.12, 0.04, -1.68], [0.05, -0.08, -1.66], [0.05, 0.08, -1.66],
-    [0.00, -0.19, -1.45], [0.00, 0.19, -1.45], [0.05, -0.30, -1.18], [-0.05, 0.30, -1.18],
-    [0.15, -0.33, -0.95], [0.05, 0.36, -0.93], [0.00, -0.10, -0.95], [0.00, 0.10, -0.95],
-    [0.10, -0.11, -0.50], [-0.05, 0.11, -0.50], [0.00, -0.12, -0.05], [-0.10, 0.12, -0.05],
-])  # fmt: skip
+
 
 
 def _demo_like_capture(J: np.ndarray, t_ns: np.ndarray, seed: int = 2):
@@ -135,7 +130,7 @@ def _orbit_scene(T=60, fps=8.0, radius_m=9.0, omega_rad_s=0.6):
     from skycap.frames import intrinsics_matrix
 
     t = np.arange(T) / fps
-    X = np.repeat(_BODY[None], T, 0) + np.array([1.0, -0.5, 0.0])
+    X = np.repeat(UPRIGHT_BODY[None], T, 0) + np.array([1.0, -0.5, 0.0])
     centre = X.mean(1)
     ang = omega_rad_s * t
     cam = np.stack([centre[:, 0] + radius_m * np.cos(ang), centre[:, 1] + radius_m * np.sin(ang), np.full(T, -4.0)], -1)

@@ -11,33 +11,10 @@ import msgspec
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tracking"))
-from tracking_scene import CAM, drone_positions, look_at_pose, person_center  # noqa: E402
+from tracking_scene import camera_info, detections_message  # noqa: E402
 
-from onboard.tracking.measurement import box_from_person
 from onboard.tracking.stage import TrackingStage, box_problem, detection_problem
-from shared_msgs.messages import BoundingBox, CameraInfo, Detections
-
-
-def _info() -> CameraInfo:
-    return CameraInfo(header=CameraInfo.make_header("drone_0", 0), camera_id="cam", width_px=CAM.width_px,
-                      height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px)
-
-
-def _detections(k: int, t_s: float, frame: int, rng, px_sigma=2.0) -> tuple[Detections, np.ndarray]:
-    """Drone k's detection of the walking person at t_s (exact poses, box noise px_sigma)."""
-    p = person_center(t_s)
-    T = look_at_pose(drone_positions(t_s, 3)[k], p)
-    box_true, _ = box_from_person(p, CAM, T)
-    box = box_true + rng.normal(0, px_sigma, 4)
-    v = px_sigma**2
-    det = Detections(
-        header=Detections.make_header(f"drone_{k}", int(t_s * 1e9), frame), camera_id="cam", frame_index=frame,
-        detector="simulated", mode="simulated",
-        boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9,
-                           var_x_min_px2=v, var_y_min_px2=v, var_x_max_px2=v, var_y_max_px2=v)],
-        width_px=CAM.width_px, height_px=CAM.height_px, T_world_cam=tuple(T.reshape(-1)),
-        T_world_cam_cov=tuple(np.diag([0.25] * 3 + [1e-5] * 3).reshape(-1)))
-    return det, box_true
+from shared_msgs.messages import BoundingBox
 from simulator.config import SimConfig
 from simulator.vehicle.autopilot import SimVehicle
 
@@ -54,7 +31,7 @@ def test_box_and_message_problems_are_named():
     assert "non-finite" in box_problem(_box(y_min_px=float("nan")))
     assert "variance" in box_problem(_box(var_x_min_px2=-1.0))
     assert "score" in box_problem(_box(score=3.0))
-    det, _ = _detections(1, 1.0, 0, np.random.default_rng(0))
+    det, _ = detections_message(1, 1.0, 0, np.random.default_rng(0))
     assert detection_problem(det) is None
     T = np.asarray(det.T_world_cam).reshape(4, 4).copy()
     T[:3, :3] *= 2.0
@@ -67,13 +44,13 @@ def test_box_and_message_problems_are_named():
 def test_stage_ignores_and_counts_malformed_detections_and_keeps_tracking():
     rng = np.random.default_rng(5)
     stage, ref = TrackingStage("drone_0"), TrackingStage("drone_0")
-    stage.set_camera_info(_info())
-    ref.set_camera_info(_info())
+    stage.set_camera_info(camera_info())
+    ref.set_camera_info(camera_info())
     n_bad = 0
     for i in range(100):
         for k in range(3):
             t = i / 5.0 + k / 15.0
-            det, _ = _detections(k, t, i, rng)
+            det, _ = detections_message(k, t, i, rng)
             for st in (stage, ref):
                 (st.on_own_detections if k == 0 else st.on_teammate_detections)(det)
             if i % 10 == 3:  # a teammate's garbage: NaN box, inverted box, broken pose, in turn
@@ -94,7 +71,7 @@ def test_stage_ignores_and_counts_malformed_detections_and_keeps_tracking():
     e, r = stage.estimate(int(21e9)), ref.estimate(int(21e9))
     np.testing.assert_allclose(e.position_ned_m, r.position_ned_m, atol=1e-9)
     # one bad box among good ones: only that box is dropped
-    det, _ = _detections(1, 21.0, 200, rng)
+    det, _ = detections_message(1, 21.0, 200, rng)
     mixed = msgspec.structs.replace(det, boxes=[*det.boxes, _box(score=float("inf"))])
     before = stage.counts["teammate_measurements"]
     stage.on_teammate_detections(mixed)
@@ -138,14 +115,14 @@ def test_stage_takes_a_position_step_back_from_its_own_poses():
     rng = np.random.default_rng(2)
     stage, ref = TrackingStage("drone_0"), TrackingStage("drone_0")
     for st in (stage, ref):
-        st.set_camera_info(_info())
+        st.set_camera_info(camera_info())
     step = np.array([3.0, -1.0, 0.0])
     stage.set_position_step(step, int(10e9), relax_s=30.0)
     errs = []
     for i in range(150):
         for k in range(3):
             t = i / 5.0 + k / 15.0
-            det, _ = _detections(k, t, i, rng)
+            det, _ = detections_message(k, t, i, rng)
             if k == 0:
                 jumped = det
                 if t >= 10.0:  # the reported pose carries the step (a GPS jump at t = 10 s)

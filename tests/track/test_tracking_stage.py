@@ -10,43 +10,17 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tracking"))
-from tracking_scene import CAM, drone_positions, look_at_pose, person_center  # noqa: E402
+from tracking_scene import camera_info, detections_message, person_center  # noqa: E402
 
 from groundstation.summary import box_in_roi, lost_time_s
-from onboard.tracking.measurement import box_from_person
 from onboard.tracking.stage import TrackingStage
-from shared_msgs.messages import BoundingBox, CameraInfo, Detections
-
-
-def _info() -> CameraInfo:
-    return CameraInfo(header=CameraInfo.make_header("drone_0", 0), camera_id="cam", width_px=CAM.width_px,
-                      height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px)
-
-
-def _detections(k: int, t_s: float, frame: int, rng, offset=np.zeros(3), px_sigma=2.0, pos_var_m2=0.25) -> tuple[Detections, np.ndarray]:
-    cam_true = drone_positions(t_s, 3)[k]
-    p = person_center(t_s)
-    T_true = look_at_pose(cam_true, p)
-    box_true, _ = box_from_person(p, CAM, T_true)
-    box = box_true + rng.normal(0, px_sigma, 4)
-    T_rep = T_true.copy()
-    T_rep[:3, 3] += offset
-    v = px_sigma**2
-    det = Detections(
-        header=Detections.make_header(f"drone_{k}", int(t_s * 1e9), frame), camera_id="cam", frame_index=frame,
-        detector="simulated", mode="simulated",
-        boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9,
-                           var_x_min_px2=v, var_y_min_px2=v, var_x_max_px2=v, var_y_max_px2=v)],
-        width_px=CAM.width_px, height_px=CAM.height_px, T_world_cam=tuple(T_rep.reshape(-1)),
-        T_world_cam_cov=tuple(np.diag([pos_var_m2] * 3 + [1e-5] * 3).reshape(-1)))
-    return det, box_true
 
 
 def test_stage_fuses_teammates_estimates_own_offset_and_plans_rois():
     rng = np.random.default_rng(3)
     offset = np.array([1.2, -0.8, 0.4])  # drone_0's GPS offset (reported = true + offset)
     stage = TrackingStage("drone_0")
-    stage.set_camera_info(_info())
+    stage.set_camera_info(camera_info())
     hits, errs = [], []
     rate, dur = 5.0, 40.0
     for i in range(int(dur * rate)):
@@ -54,7 +28,7 @@ def test_stage_fuses_teammates_estimates_own_offset_and_plans_rois():
             t = i / rate + k / (3 * rate)
             # drone_0: GPS grade and biased; the teammates report (and have) RTK-grade poses, which pin the
             # fleet's frame, so drone_0's whole bias is observable
-            det, box_true = _detections(k, t, i, rng, offset if k == 0 else np.zeros(3), pos_var_m2=1.0 if k == 0 else 0.05**2)
+            det, box_true = detections_message(k, t, i, rng, offset if k == 0 else np.zeros(3), pos_var_m2=1.0 if k == 0 else 0.05**2)
             if k == 0:
                 shared = stage.on_own_detections(det)
                 assert shared.header.sender_id == "drone_0" and shared.boxes == det.boxes
@@ -80,11 +54,11 @@ def test_stage_without_track_plans_full_frame_and_publishes_nothing():
     stage = TrackingStage("drone_0")
     assert stage.target_message(0) is None
     rng = np.random.default_rng(0)
-    det, _ = _detections(0, 0.0, 0, rng)
+    det, _ = detections_message(0, 0.0, 0, rng)
     # no camera info yet: nothing can be fused, ROI empty
     out = stage.on_own_detections(det)
     assert out.roi_px == (0.0, 0.0, 0.0, 0.0) and not stage.filter.initialised
-    stage.set_camera_info(_info())
+    stage.set_camera_info(camera_info())
     out = stage.on_own_detections(det)
     assert out.roi_px == (0.0, 0.0, 0.0, 0.0)  # first frame: no track yet -> full-frame search
     assert stage.last_plan.search and stage.filter.initialised
@@ -109,13 +83,13 @@ def test_stage_plans_before_a_real_detector_and_keeps_the_searched_region():
     rng = np.random.default_rng(4)
     stage = TrackingStage("drone_0")
     assert stage.plan_for(0, np.eye(4)) is None  # no camera info yet
-    stage.set_camera_info(_info())
+    stage.set_camera_info(camera_info())
     for i in range(40):
         for k in range(3):
-            det, _ = _detections(k, i / 4 + k / 12, i, rng)
+            det, _ = detections_message(k, i / 4 + k / 12, i, rng)
             (stage.on_own_detections if k == 0 else stage.on_teammate_detections)(det)
     t = 10.0
-    det, box_true = _detections(0, t, 99, rng)
+    det, box_true = detections_message(0, t, 99, rng)
     plan = stage.plan_for(int(t * 1e9), det.T_world_cam)
     assert plan.mode == "roi" and not plan.search and box_in_roi(box_true, plan.roi_px)
     searched = (plan.roi_px[0] - 3.0, plan.roi_px[1] - 3.0, plan.roi_px[2] + 6.0, plan.roi_px[3] + 6.0)  # clipped/rounded by the detector

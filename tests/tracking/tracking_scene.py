@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from onboard.tracking.measurement import CameraIntrinsics, box_from_person, measurement_from_box
+from shared_msgs.messages import BoundingBox, CameraInfo, Detections
 from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose
 
 CAM = CameraIntrinsics(fx_px=1000.0, fy_px=1000.0, cx_px=960.0, cy_px=540.0, width_px=1920, height_px=1080)
@@ -68,3 +69,30 @@ def simulate(
             t += period
     out.sort(key=lambda m: m.t_ns)
     return out
+
+
+def camera_info() -> CameraInfo:
+    """The scene camera (:data:`CAM`) as drone_0's CameraInfo message."""
+    return CameraInfo(header=CameraInfo.make_header("drone_0", 0), camera_id="cam", width_px=CAM.width_px,
+                      height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px)
+
+
+def detections_message(k: int, t_s: float, frame: int, rng: np.random.Generator, offset=np.zeros(3), px_sigma: float = 2.0,
+                       pos_var_m2: float = 0.25) -> tuple[Detections, np.ndarray]:
+    """(drone k's Detections of the walking person at t_s, the exact box). The box has pixel noise px_sigma;
+    the reported camera position is true + offset, with position variance pos_var_m2 in T_world_cam_cov."""
+    p = person_center(t_s)
+    T_true = look_at_pose(drone_positions(t_s, 3)[k], p)
+    box_true, _ = box_from_person(p, CAM, T_true)
+    box = box_true + rng.normal(0, px_sigma, 4)
+    T_rep = T_true.copy()
+    T_rep[:3, 3] += offset
+    v = px_sigma**2
+    det = Detections(
+        header=Detections.make_header(f"drone_{k}", int(t_s * 1e9), frame), camera_id="cam", frame_index=frame,
+        detector="simulated", mode="simulated",
+        boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9,
+                           var_x_min_px2=v, var_y_min_px2=v, var_x_max_px2=v, var_y_max_px2=v)],
+        width_px=CAM.width_px, height_px=CAM.height_px, T_world_cam=tuple(T_rep.reshape(-1)),
+        T_world_cam_cov=tuple(np.diag([pos_var_m2] * 3 + [1e-5] * 3).reshape(-1)))
+    return det, box_true
