@@ -191,7 +191,7 @@ class TrackingStage:
             return None
         est = self.filter.estimate(t_ns) if self.filter.initialised else None
         if est is not None:
-            est = self.in_reported_frame(est)
+            est = est.in_reported_frame()  # this drone's reported (GPS) frame, in which its camera pose is given
         T = np.asarray(T_world_cam, dtype=float).reshape(4, 4)
         return plan_detection(est, self.intrinsics, T, int(t_ns), self.cfg.roi)
 
@@ -219,12 +219,6 @@ class TrackingStage:
         self.counts["own_measurements"] += self._fuse(det)
         self._log_offset()
         return msgspec.structs.replace(det, roi_px=roi)
-
-    @staticmethod
-    def in_reported_frame(est: TrackEstimate) -> TrackEstimate:
-        """The estimate as seen from this drone's reported (GPS) frame, in which its camera pose is given:
-        person at p + b, with the covariance of p + b (see :meth:`TrackEstimate.in_reported_frame`)."""
-        return est.in_reported_frame()
 
     def on_teammate_detections(self, det: Detections) -> None:
         if det.header.sender_id == self.drone_id:
