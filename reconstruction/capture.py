@@ -6,6 +6,12 @@ A :class:`Capture` holds one :class:`CameraCapture` per camera (drone). Each cam
   (camera optical -> world NED, see :mod:`skycap.frames`), and their uncertainty as RMS 3D errors
   ``pos_sigma_m`` (P,) (sqrt of the position covariance's trace) and ``rot_sigma_deg`` (P,) (RMS
   rotation angle);
+* optional **motion rates** at the same pose samples, from the drone's estimator and IMU: camera
+  velocity ``vel_world_mps`` (P, 3) (world NED, m/s) with RMS 3D error ``vel_sigma_mps`` (P,), and
+  camera angular velocity ``omega_cam_radps`` (P, 3) in the CAMERA frame (the rotation advances as
+  R(t + dt) = R(t) exp([omega dt]x)) with RMS 3D error ``omega_sigma_radps`` (P,). Position and
+  attitude samples are noisy but unbiased over time; rates are precise over seconds. ``None`` when the
+  source has none (the fit then relies on the pose samples alone);
 * **intrinsics**, timestamped: ``t_intrinsics_ns`` (I,), ``K`` (I, 3, 3) pinhole (no distortion),
   ``width_px``/``height_px``;
 * **frames**: ``t_frame_ns`` (F,) capture times, 2D keypoints ``keypoints_px`` (F, D, 17, 2) in COCO-17
@@ -84,6 +90,10 @@ class CameraCapture:
     confidence: np.ndarray  # (F, D, 17)
     detectors: tuple[str, ...] = ("detector",)
     image_paths: tuple[str, ...] = ()
+    vel_world_mps: np.ndarray | None = None  # (P, 3) world NED
+    vel_sigma_mps: np.ndarray | None = None  # (P,) RMS 3D
+    omega_cam_radps: np.ndarray | None = None  # (P, 3) camera frame
+    omega_sigma_radps: np.ndarray | None = None  # (P,) RMS 3D
 
     def __post_init__(self) -> None:
         self.t_pose_ns = np.asarray(self.t_pose_ns, dtype=np.int64).reshape(-1)
@@ -106,7 +116,22 @@ class CameraCapture:
         self.image_paths = tuple(str(p) for p in self.image_paths)
         self.width_px = int(self.width_px)
         self.height_px = int(self.height_px)
+        for rate, sigma in (("vel_world_mps", "vel_sigma_mps"), ("omega_cam_radps", "omega_sigma_radps")):
+            if getattr(self, rate) is None:
+                setattr(self, sigma, None)
+                continue
+            setattr(self, rate, np.asarray(getattr(self, rate), dtype=float))
+            sig = 1.0 if getattr(self, sigma) is None else getattr(self, sigma)
+            setattr(self, sigma, np.broadcast_to(np.asarray(sig, dtype=float), (P,)).copy())
         self._validate()
+
+    @property
+    def has_velocity(self) -> bool:
+        return self.vel_world_mps is not None
+
+    @property
+    def has_angular_velocity(self) -> bool:
+        return self.omega_cam_radps is not None
 
     def _validate(self) -> None:
         n = self.name
@@ -138,6 +163,16 @@ class CameraCapture:
             raise CaptureError(f"camera {n!r}: T_world_cam holds NaN/inf")
         if self.width_px <= 0 or self.height_px <= 0:
             raise CaptureError(f"camera {n!r}: image size must be positive, got {self.width_px}x{self.height_px}")
+        for rate, sigma, what in (("vel_world_mps", "vel_sigma_mps", "velocity"), ("omega_cam_radps", "omega_sigma_radps", "angular velocity")):
+            v = getattr(self, rate)
+            if v is None:
+                continue
+            if v.shape != (P, 3):
+                raise CaptureError(f"camera {n!r}: {rate} must be ({P}, 3) like t_pose_ns (one {what} per pose sample), got {v.shape}")
+            if not np.all(np.isfinite(v)):
+                raise CaptureError(f"camera {n!r}: {rate} holds NaN/inf; drop those pose samples' rates (set {rate}=None) or repair them")
+            if not np.all(getattr(self, sigma) > 0):
+                raise CaptureError(f"camera {n!r}: {sigma} must be > 0 (the {what}'s RMS 3D error)")
 
     @property
     def num_frames(self) -> int:
@@ -206,6 +241,8 @@ class Capture:
         for i, c in enumerate(self.cameras):
             for f in dataclasses.fields(c):
                 v = getattr(c, f.name)
+                if v is None:  # optional channel absent: no entry
+                    continue
                 arrays[f"cam{i}.{f.name}"] = np.array(v) if not isinstance(v, tuple) else np.array(list(v), dtype=str)
         arrays["num_cameras"] = np.array(len(self.cameras))
         np.savez_compressed(path, **arrays)
@@ -223,6 +260,10 @@ class Capture:
         for i in range(int(z["num_cameras"])):
             kw = {}
             for f in dataclasses.fields(CameraCapture):
+                if f"cam{i}.{f.name}" not in z.files:
+                    if f.default is dataclasses.MISSING:
+                        raise CaptureError(f"capture file {path} lacks cam{i}.{f.name}; it was not written by Capture.save")
+                    continue
                 v = z[f"cam{i}.{f.name}"]
                 if f.name in ("detectors", "image_paths"):
                     kw[f.name] = tuple(str(s) for s in v.tolist())

@@ -23,6 +23,12 @@ Pipeline (:func:`synthesize_capture`):
    noise per pose sample (GNSS/IMU jitter). Default 0 (white): a bias common to all drones cannot be
    observed from images (it moves cameras and person together) and shows up in MPJPE 1:1. The capture
    carries these sigmas as the drones' uncertainty.
+6. With ``imu_rates`` the drones also report what their estimator and IMU measure precisely over
+   seconds: camera velocity (true velocity + white noise ``camera_vel_noise_mps`` RMS 3D; GNSS Doppler
+   velocity is good to about 0.05 m/s per axis) and camera angular velocity in the camera frame (true
+   rate + white noise ``camera_rate_noise_degps`` + a constant per-drone bias ``camera_rate_bias_degps``,
+   both RMS 3D: the residual gyro bias an estimator leaves). These draws come from their own random
+   stream, so the same seed gives the same keypoints and pose samples with or without them.
 
 Example::
 
@@ -41,7 +47,7 @@ from reconstruction.capture import CameraCapture, Capture, CaptureError, interpo
 from skycap.frames import intrinsics_matrix, make_T, project_points
 from skycap.skeleton import COCO17_FLIP
 
-__all__ = ["SynthConfig", "SynthTruth", "synthesize_capture", "interpolate_joints", "look_at_T_world_cam"]
+__all__ = ["SynthConfig", "SynthTruth", "synthesize_capture", "true_rates", "interpolate_joints", "look_at_T_world_cam"]
 
 
 @dataclasses.dataclass
@@ -64,6 +70,10 @@ class SynthConfig:
     camera_pos_noise_m: float = 0.5
     camera_rot_noise_deg: float = 2.0
     camera_noise_drift_fraction: float = 0.0
+    imu_rates: bool = True
+    camera_vel_noise_mps: float = 0.1
+    camera_rate_noise_degps: float = 0.2
+    camera_rate_bias_degps: float = 0.02
     width_px: int = 1920
     height_px: int = 1080
     focal_px: float = 1500.0
@@ -121,6 +131,28 @@ def _pose_error(rng: np.random.Generator, t_s: np.ndarray, rms: float, drift_fra
     return _smooth_error(rng, t_s, rms * np.sqrt(f)) + white
 
 
+def true_rates(t_s: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact camera velocity (P, 3) world and angular velocity (P, 3) camera frame of a pose track
+    (times (P,) seconds, poses (P, 4, 4)): velocity by central differences; angular velocity forward,
+    so that R[k+1] = R[k] exp([omega[k] dt]x) holds exactly (the last sample repeats the one before)."""
+    v = np.gradient(T_world_cam[:, :3, 3], t_s, axis=0)
+    R = Rotation.from_matrix(T_world_cam[:, :3, :3])
+    w = (R[:-1].inv() * R[1:]).as_rotvec() / np.diff(t_s)[:, None]
+    return v, np.concatenate([w, w[-1:]], axis=0)
+
+
+def _imu_rates(rng: np.random.Generator, t_s: np.ndarray, T_true: np.ndarray, cfg: SynthConfig) -> dict:
+    """The rate channels of one camera (CameraCapture keyword arguments): truth + noise (module doc, 6)."""
+    v, w = true_rates(t_s, T_true)
+    n = len(t_s)
+    v_meas = v + rng.normal(0.0, cfg.camera_vel_noise_mps / np.sqrt(3.0), (n, 3))
+    bias = rng.normal(0.0, np.radians(cfg.camera_rate_bias_degps) / np.sqrt(3.0), 3)
+    w_meas = w + bias + rng.normal(0.0, np.radians(cfg.camera_rate_noise_degps) / np.sqrt(3.0), (n, 3))
+    w_sigma = np.radians(np.hypot(cfg.camera_rate_noise_degps, cfg.camera_rate_bias_degps))
+    return {"vel_world_mps": v_meas, "vel_sigma_mps": max(cfg.camera_vel_noise_mps, 1e-3),
+            "omega_cam_radps": w_meas, "omega_sigma_radps": max(w_sigma, 1e-5)}  # fmt: skip
+
+
 def synthesize_capture(
     joints_ned: np.ndarray, t_ns: np.ndarray, cfg: SynthConfig | None = None, seed: int = 0
 ) -> tuple[Capture, SynthTruth]:
@@ -138,6 +170,7 @@ def synthesize_capture(
     if cfg.drones < 1:
         raise CaptureError("drones must be >= 1")
     rng = np.random.default_rng(seed)
+    rng_rates = np.random.default_rng([seed, 1])  # own stream: rates on/off leaves the other draws alone
     t0, t1 = int(t_ns[0]), int(t_ns[-1])
     dur_s = (t1 - t0) * 1e-9
     hip_mid = 0.5 * (joints_ned[:, 11] + joints_ned[:, 12])
@@ -197,8 +230,10 @@ def synthesize_capture(
                 cf[miss | ~inside] = 0.0
                 kp[f, d] = u
                 conf[f, d] = cf
+        rates = _imu_rates(rng_rates, tp_s, T_true, cfg) if cfg.imu_rates else {}
         cams.append(
             CameraCapture(
+                **rates,
                 name=f"drone_{c}", t_pose_ns=t_pose, T_world_cam=T_est,
                 pos_sigma_m=max(cfg.camera_pos_noise_m, 1e-3), rot_sigma_deg=max(cfg.camera_rot_noise_deg, 1e-2),
                 t_intrinsics_ns=np.array([t0]), K=K[None], width_px=cfg.width_px, height_px=cfg.height_px,

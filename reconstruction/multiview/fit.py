@@ -31,6 +31,10 @@ frame. Energy (negative log-likelihoods, summed, divided by the number of output
 * temporal smoothness: joint accelerations / ``accel_sigma_mps2`` (all 17 joints, so root and pose);
 * cameras: robust GPS/IMU prior on each frame's correction using the drones' own sigmas, and a
   motion-smoothness prior on the REFINED camera trajectory (position and rotation accelerations);
+  when the capture carries the drones' velocity and angular velocity, the refined track's displacement
+  and relative rotation between consecutive correction knots must match their integrals (with their
+  noise integrated over the interval, and one gyro bias per camera): the pose samples' white noise then
+  averages over the whole clip instead of over a knot interval;
 
 initialised by robust triangulation (IRLS Geman-McClure over views), a shape measured on it, and
 inverse kinematics; Adam (one-cycle learning rate) for ``iters`` steps, batched over the whole sequence on ``device``.
@@ -101,6 +105,11 @@ class FitConfig:
     cam_smooth_window_s: float = 6.0  # reference track: Savitzky-Golay over this window (clipped to the clip)
     cam_smooth_order: int = 2  # Savitzky-Golay polynomial order of the reference camera track
     cam_knot_s: float = 1.0  # spacing of the camera-correction knots
+    # the drones' velocity and angular-velocity samples (when the capture has them): the refined track's
+    # displacement / relative rotation between consecutive knots must match their integral; one constant
+    # gyro bias per camera is estimated with this prior (RMS 3D, deg/s)
+    use_rates: bool = True
+    gyro_bias_sigma_degps: float = 0.1
     swap_robust: bool = True
     refine_cameras: bool = True
 
@@ -236,6 +245,18 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     # consecutive frames of the same camera (for camera smoothness)
     knot_runs = [(k0_, k1_) for k0_, k1_ in knots["cam_ranges"] if k1_ - k0_ >= 3]
     noise2 = cfg.expected_noise_px**2
+    rc = _rate_constraints(capture, samp, knots) if (cfg.use_rates and cfg.refine_cameras) else {}
+    rv, ro_ = rc.get("vel"), rc.get("omega")
+    if rv is not None:
+        rv = {k: (torch.as_tensor(v, device=dev) if k.endswith("i0") else f(v)) for k, v in rv.items()}
+    gyro_bias = torch.zeros(capture.num_cameras, 3, dtype=dt, device=dev, requires_grad=True)
+    if ro_ is not None:
+        ro_ = {k: (torch.as_tensor(v, device=dev) if k.endswith("i0") or k == "cam" else f(v)) for k, v in ro_.items()}
+        params.append(gyro_bias)
+    bias_sig = np.radians(cfg.gyro_bias_sigma_degps) / np.sqrt(3.0)
+
+    def knot_interp(c: torch.Tensor, i0: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        return (1 - w)[:, None] * c[i0] + w[:, None] * c[i0 + 1]
 
     def cam_poses():
         """Refined poses at the frames (N) and at the drone pose samples (M)."""
@@ -244,6 +265,31 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
         dws = (1 - ws) * dw[ks0] + ws * dw[ks0 + 1]
         dps = (1 - ws) * dp[ks0] + ws * dp[ks0 + 1]
         return _rotvec_to_R(dwf) @ R_sm_f, p_sm_f + dpf, _rotvec_to_R(dws) @ R_sm_s, p_sm_s + dps
+
+    def cam_energy(Rs: torch.Tensor, pss: torch.Tensor) -> torch.Tensor:
+        """The cameras' own terms (no images): GPS/IMU prior, correction smoothness, rates."""
+        # GPS/IMU prior: refined track vs every drone pose sample (robust, the drones' own sigmas)
+        # the capture's sigmas are RMS 3D errors (sqrt of the covariance trace): per axis sigma^2 / 3
+        e_p = 3.0 * ((pss - p_raw_s) ** 2).sum(-1) / ps**2
+        dR = Rs @ R_raw_s.transpose(-1, -2)
+        e_r = 3.0 * (torch.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1) ** 2).sum(-1) / 4 / rs**2
+        E_cam = cfg.w_cam_prior * 0.5 * (_huber(e_p, 3.0).sum() + _huber(e_r, 3.0).sum())
+        # motion smoothness of the corrections (second differences at the knots)
+        for k0_, k1_ in knot_runs:
+            ap = (dp[k0_ + 2 : k1_] - 2 * dp[k0_ + 1 : k1_ - 1] + dp[k0_ : k1_ - 2]) / dt_knot**2
+            ar = (dw[k0_ + 2 : k1_] - 2 * dw[k0_ + 1 : k1_ - 1] + dw[k0_ : k1_ - 2]) / dt_knot**2
+            E_cam = E_cam + 0.5 * (ap**2).sum() / cfg.cam_accel_sigma_mps2**2 + 0.5 * (ar**2).sum() / cfg.cam_ang_accel_sigma_radps2**2
+        if rv is not None:  # displacement between knots = integrated velocity
+            d = knot_interp(dp, rv["b_i0"], rv["b_w"]) - knot_interp(dp, rv["a_i0"], rv["a_w"]) - rv["m"]
+            E_cam = E_cam + 0.5 * ((d / rv["sigma"][:, None]) ** 2).sum()
+        if ro_ is not None:  # relative rotation between knots = integrated angular velocity (minus gyro bias)
+            Ra = _rotvec_to_R(knot_interp(dw, ro_["a_i0"], ro_["a_w"])) @ ro_["Ra"]
+            Rb = _rotvec_to_R(knot_interp(dw, ro_["b_i0"], ro_["b_w"])) @ ro_["Rb"]
+            A = ro_["M"].transpose(-1, -2) @ Ra.transpose(-1, -2) @ Rb
+            d = 0.5 * torch.stack([A[:, 2, 1] - A[:, 1, 2], A[:, 0, 2] - A[:, 2, 0], A[:, 1, 0] - A[:, 0, 1]], -1)
+            d = d + ro_["span"][:, None] * gyro_bias[ro_["cam"]]
+            E_cam = E_cam + 0.5 * ((d / ro_["sigma"][:, None]) ** 2).sum() + 0.5 * (gyro_bias**2).sum() / bias_sig**2
+        return E_cam
 
     def energy(sig: float) -> torch.Tensor:
         X = model(ro, pose, tr, shape)  # (T, 17, 3)
@@ -261,24 +307,14 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
         Xs = model(ro, pose, tr, shape.detach())  # smoothness must not shrink the skeleton
         acc = (Xs[2:] - 2 * Xs[1:-1] + Xs[:-2]) * fps * fps
         E_smooth = 0.5 * ((acc / acc_sigma) ** 2).sum()
-        E_cam = torch.zeros((), device=dev)
-        if cfg.refine_cameras:
-            # GPS/IMU prior: refined track vs every drone pose sample (robust, the drones' own sigmas)
-            # the capture's sigmas are RMS 3D errors (sqrt of the covariance trace): per axis sigma^2 / 3
-            e_p = 3.0 * ((pss - p_raw_s) ** 2).sum(-1) / ps**2
-            dR = Rs @ R_raw_s.transpose(-1, -2)
-            e_r = 3.0 * (torch.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1) ** 2).sum(-1) / 4 / rs**2
-            E_cam = cfg.w_cam_prior * 0.5 * (_huber(e_p, 3.0).sum() + _huber(e_r, 3.0).sum())
-            # motion smoothness of the corrections (second differences at the knots)
-            for k0_, k1_ in knot_runs:
-                ap = (dp[k0_ + 2 : k1_] - 2 * dp[k0_ + 1 : k1_ - 1] + dp[k0_ : k1_ - 2]) / dt_knot**2
-                ar = (dw[k0_ + 2 : k1_] - 2 * dw[k0_ + 1 : k1_ - 1] + dw[k0_ : k1_ - 2]) / dt_knot**2
-                E_cam = E_cam + 0.5 * (ap**2).sum() / cfg.cam_accel_sigma_mps2**2 + 0.5 * (ar**2).sum() / cfg.cam_ang_accel_sigma_radps2**2
+        E_cam = cam_energy(Rs, pss) if cfg.refine_cameras else torch.zeros((), device=dev)
         return (E_data + E_prior + E_shape + E_smooth + E_cam) / T
 
     groups = [{"params": [ro, pose], "lr": cfg.lr}, {"params": [tr], "lr": cfg.lr * 0.5}, {"params": [shape], "lr": cfg.lr * 0.25}]
     if cfg.refine_cameras:
         groups += [{"params": [dw], "lr": cfg.lr * 0.25}, {"params": [dp], "lr": cfg.lr}]
+    if ro_ is not None:
+        groups += [{"params": [gyro_bias], "lr": cfg.lr * 0.01}]
     opt = torch.optim.Adam(groups)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups], total_steps=cfg.iters, pct_start=0.15)
     bar = tqdm(range(cfg.iters), desc="fit (product)", disable=not progress, leave=False)
@@ -313,7 +349,7 @@ def _knots(samp: dict, obs, spacing_s: float) -> dict:
     f_w = np.zeros(len(obs.t_ns))
     s_i0 = np.zeros(len(samp["t_ns"]), dtype=np.int64)
     s_w = np.zeros(len(samp["t_ns"]))
-    ranges, n0 = [], 0
+    ranges, times, n0 = [], [], 0
     step = int(spacing_s * 1e9)
     for ci, (a0, a1) in enumerate(samp["cam_ranges"]):
         ts = samp["t_ns"][a0:a1]
@@ -328,16 +364,17 @@ def _knots(samp: dict, obs, spacing_s: float) -> dict:
             i0[idx] = n0 + k
             w[idx] = np.clip((t - kt[k]) / step, 0.0, 1.0)
         ranges.append((n0, n0 + nk))
+        times.append(kt)
         n0 += nk
-    return {"n": n0, "f_i0": f_i0, "f_w": f_w, "s_i0": s_i0, "s_w": s_w, "cam_ranges": ranges}
+    return {"n": n0, "f_i0": f_i0, "f_w": f_w, "s_i0": s_i0, "s_w": s_w, "cam_ranges": ranges, "times": times}
 
 
 def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: float, smooth_order: int = 2) -> dict:
     """The drones' pose samples covering the frames: times (M,), T_est/T_smooth (M, 4, 4), sigmas (M,),
     per camera index ranges, and for every frame n its interval j0[n] (into the M samples) and weight beta[n]."""
-    from reconstruction.multiview.observations import smooth_poses
+    from reconstruction.multiview.observations import camera_track
 
-    ts, Te, Tsm, ps, rs, ranges = [], [], [], [], [], []
+    ts, Te, Tsm, ps, rs, ranges, src = [], [], [], [], [], [], []
     j0 = np.zeros(len(obs.t_ns), dtype=np.int64)
     beta = np.zeros(len(obs.t_ns))
     m0 = 0
@@ -354,18 +391,83 @@ def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: fl
         if len(t_s) < 2:  # a single pose: use it at both ends
             t_s = np.array([lo - 1, hi + 1], dtype=np.int64)
             T_s = np.stack([cam.T_world_cam[idx[0] if len(idx) else 0]] * 2)
-        smooth_all = smooth_poses(cam.t_pose_ns, cam.T_world_cam, smooth_window_s, smooth_order) if smooth_window_s > 0 else cam.T_world_cam
+        smooth_all = camera_track(cam, smooth_window_s, smooth_order)
         T_sm = smooth_all[idx] if len(idx) == len(t_s) else T_s
         k = np.clip(np.searchsorted(t_s, tf, side="right") - 1, 0, len(t_s) - 2)
         j0[sl] = m0 + k
         beta[sl] = np.clip((tf - t_s[k]) / np.maximum(t_s[k + 1] - t_s[k], 1), 0.0, 1.0)
         p_sig, r_sig = cam.sigma_at(t_s)
         ts.append(t_s), Te.append(T_s), Tsm.append(T_sm), ps.append(p_sig), rs.append(np.radians(r_sig))
+        src.append(idx if len(idx) == len(t_s) else None)  # indices into the camera's own pose samples
         ranges.append((m0, m0 + len(t_s)))
         m0 += len(t_s)
     c = np.concatenate
     return {"t_ns": c(ts), "T_est": c(Te), "T_smooth": c(Tsm), "pos_sigma_m": c(ps), "rot_sigma_rad": c(rs),
-            "cam_ranges": ranges, "j0": j0, "beta": beta}  # fmt: skip
+            "cam_ranges": ranges, "j0": j0, "beta": beta, "src": src}  # fmt: skip
+
+
+def _rate_constraints(capture: Capture, samp: dict, knots: dict) -> dict:
+    """Velocity / angular-velocity constraints between consecutive knots of every camera that has them.
+
+    For each camera, the knot times clipped to its pose samples give intervals [a, b]; per interval:
+    knot interpolation (index, weight) of a and b, and for velocity ``m`` (K, 3) = integral of the
+    measured velocity minus the reference track's displacement (the corrections' displacement must
+    equal it) with its per-axis sigma (white noise integrated: sigma_axis^2 * sum(dt^2)); for angular
+    velocity the reference rotations at a and b ``Ra``/``Rb`` (K, 3, 3), the integrated relative
+    rotation ``M`` (K, 3, 3) (R(b) = R(a) M), its per-axis sigma, the interval length ``span`` (s) and
+    the camera ``cam`` (for the gyro bias). Returns {"vel": ..., "omega": ...} (absent: no such data).
+    """
+    from reconstruction.capture import interpolate_poses
+
+    out: dict[str, dict[str, list]] = {}
+    for ci, cam in enumerate(capture.cameras):
+        a0, a1 = samp["cam_ranges"][ci]
+        idx = samp["src"][ci]
+        if idx is None or a1 - a0 < 3 or not (cam.has_velocity or cam.has_angular_velocity):
+            continue
+        t_s = samp["t_ns"][a0:a1]
+        T_sm = samp["T_smooth"][a0:a1]
+        kt = knots["times"][ci]
+        k_lo = knots["cam_ranges"][ci][0]
+        tau = np.unique(np.clip(kt, t_s[0], t_s[-1]))
+        if len(tau) < 2:
+            continue
+        k = np.clip(np.searchsorted(kt, tau, side="right") - 1, 0, len(kt) - 2)
+        i0, w = k_lo + k, np.clip((tau - kt[k]) / (kt[1] - kt[0]), 0.0, 1.0)
+        ts = (t_s - t_s[0]) * 1e-9
+        tq = (tau - t_s[0]) * 1e-9
+        dts = np.diff(ts)
+        span = np.diff(tq)
+        # per interval: sum of squared sample steps inside it (integrated white noise)
+        cum_dt2 = np.concatenate([[0.0], np.cumsum(dts**2)])
+        sum_dt2 = np.maximum(np.diff(np.interp(tq, ts, cum_dt2)), 1e-12)
+        base = {"a_i0": i0[:-1], "a_w": w[:-1], "b_i0": i0[1:], "b_w": w[1:]}
+        if cam.has_velocity:
+            v = cam.vel_world_mps[idx]
+            cum = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (v[1:] + v[:-1]) * dts[:, None], axis=0)])
+            C = np.stack([np.interp(tq, ts, cum[:, j]) for j in range(3)], -1)
+            P_ref = np.stack([np.interp(tq, ts, T_sm[:, j, 3]) for j in range(3)], -1)
+            sig_axis = np.interp(tq[:-1], ts, cam.vel_sigma_mps[idx]) / np.sqrt(3.0)
+            e = {**base, "m": np.diff(C, axis=0) - np.diff(P_ref, axis=0), "sigma": np.sqrt(sig_axis**2 * sum_dt2 + 1e-6)}
+            for key, val in e.items():
+                out.setdefault("vel", {}).setdefault(key, []).append(val)
+        if cam.has_angular_velocity:
+            om = cam.omega_cam_radps[idx]
+            steps = Rotation.from_rotvec(om[:-1] * dts[:, None])
+            G = [Rotation.identity()]
+            for r in steps:
+                G.append(G[-1] * r)
+            G = Rotation.concatenate(G)
+            kk = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, len(ts) - 2)
+            Gq = G[kk] * Rotation.from_rotvec(om[kk] * (tq - ts[kk])[:, None])
+            M = (Gq[:-1].inv() * Gq[1:]).as_matrix()
+            R_ref = interpolate_poses(t_s, T_sm, tau)[:, :3, :3]
+            sig_axis = np.interp(tq[:-1], ts, cam.omega_sigma_radps[idx]) / np.sqrt(3.0)
+            e = {**base, "Ra": R_ref[:-1], "Rb": R_ref[1:], "M": M, "span": span,
+                 "sigma": np.sqrt(sig_axis**2 * sum_dt2 + 1e-10), "cam": np.full(len(span), ci)}  # fmt: skip
+            for key, val in e.items():
+                out.setdefault("omega", {}).setdefault(key, []).append(val)
+    return {name: {key: np.concatenate(vals) for key, vals in d.items()} for name, d in out.items()}
 
 
 # ------------------------------------------------------------------------------------------- paper

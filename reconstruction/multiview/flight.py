@@ -70,7 +70,7 @@ def read_drone_log(path: str | Path, gimbal_stabilised: bool = True,
     t_info = np.array([m.header.t_measurement_ns for m in infos], dtype=np.int64)
     K = np.stack([intrinsics_matrix(m.fx_px, m.fy_px, m.cx_px, m.cy_px) for m in infos])
     states = sorted(states, key=lambda m: m.header.t_measurement_ns)
-    t_pose, T_list, ps, rs = [], [], [], []
+    t_pose, T_list, ps, rs, vel, vs = [], [], [], [], [], []
     for s in states:
         t = s.header.t_measurement_ns
         if t_pose and t <= t_pose[-1]:
@@ -87,6 +87,9 @@ def read_drone_log(path: str | Path, gimbal_stabilised: bool = True,
         t_pose.append(t)
         ps.append(float(np.sqrt(np.sum(s.position_cov_m2))))
         rs.append(float(np.degrees(np.sqrt(np.sum(s.attitude_cov_rad2)))))
+        # the camera moves with the body (the lever arm's rotational velocity, centimetres per second, is left out)
+        vel.append(s.velocity_ned_m_s)
+        vs.append(float(np.sqrt(np.sum(s.velocity_cov_m2_s2))))
     detectors = sorted({m.detector for m in kps})
     frames = sorted({m.header.t_measurement_ns for m in kps})
     fidx = {t: i for i, t in enumerate(frames)}
@@ -100,7 +103,12 @@ def read_drone_log(path: str | Path, gimbal_stabilised: bool = True,
         f, d = fidx[m.header.t_measurement_ns], detectors.index(m.detector)
         uv[f, d] = np.asarray(best.keypoints_px, dtype=float).reshape(17, 2)
         conf[f, d] = np.asarray(best.confidence, dtype=float)
+    vel_a, vs_a = np.asarray(vel, dtype=float), np.asarray(vs, dtype=float)
+    if not (np.all(np.isfinite(vel_a)) and np.all(np.isfinite(vs_a)) and np.all(vs_a > 0)):
+        log.warning("%s: some 'state' velocities are NaN or have no variance; fitting without this drone's velocities", path)
+        vel_a, vs_a = None, None
     return CameraCapture(
+        vel_world_mps=vel_a, vel_sigma_mps=vs_a,
         name=name, t_pose_ns=np.array(t_pose), T_world_cam=np.stack(T_list), pos_sigma_m=np.array(ps),
         rot_sigma_deg=np.array(rs), t_intrinsics_ns=t_info, K=K, width_px=infos[-1].width_px,
         height_px=infos[-1].height_px, t_frame_ns=np.array(frames, dtype=np.int64), keypoints_px=uv,

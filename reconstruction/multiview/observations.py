@@ -6,7 +6,8 @@
 * :func:`interpolate_to_grid` resamples each camera's keypoints to the grid times (linear between the
   two neighbouring frames; missing if either is missing or the gap is too long).
 * :func:`smooth_poses` — the drone pose tracks smoothed in time (Savitzky-Golay), the
-  starting guess for the cameras.
+  starting guess for the cameras; :func:`camera_track` fuses the pose samples with the drone's
+  velocity and angular velocity instead when the capture has them (:func:`fuse_rates`).
 * :func:`triangulate` — confidence-weighted DLT per joint and time, refined by iteratively reweighted
   least squares with Geman-McClure weights (outliers and swapped views lose their weight).
 """
@@ -46,9 +47,89 @@ def smooth_poses(t_ns: np.ndarray, T: np.ndarray, window_s: float = 2.0, order: 
     return make_T(Rotation.from_quat(q / np.linalg.norm(q, axis=-1, keepdims=True)).as_matrix(), pos)
 
 
+def fuse_rates(
+    t_ns: np.ndarray,
+    T: np.ndarray,
+    pos_sigma_m: np.ndarray,
+    rot_sigma_rad: np.ndarray,
+    vel_world_mps: np.ndarray | None,
+    vel_sigma_mps: np.ndarray | None,
+    omega_cam_radps: np.ndarray | None,
+    omega_sigma_radps: np.ndarray | None,
+    T_start: np.ndarray | None = None,
+    gn_steps: int = 2,
+) -> np.ndarray:
+    """The pose track (P, 4, 4) that best explains noisy pose samples together with velocity and
+    angular-velocity samples (sparse least squares over all P samples at once; a smoother, not a filter).
+
+    Positions: min sum |p_k - p~_k|^2 / s_p^2 + sum |p_{k+1} - p_k - dt (v_k + v_{k+1}) / 2|^2 / (dt^2 s_v^2 / 2).
+    Rotations (Gauss-Newton on world-frame corrections d_k, R_k = exp(d_k) R0_k, from ``T_start`` or
+    the samples): min sum |log(R_k R~_k^T)|^2 / s_r^2 + sum |log(exp(-(w_k - b) dt) R_k^T R_{k+1})|^2 /
+    (dt^2 s_w^2) with one constant gyro bias ``b`` (weak prior) for the whole track. Sigmas are RMS 3D
+    (per axis = /sqrt 3); a missing channel leaves that part of ``T_start`` as it is.
+    """
+    import scipy.sparse as sparse
+    from scipy.sparse.linalg import spsolve
+
+    P = len(t_ns)
+    out = (T if T_start is None else T_start).copy()
+    if P < 3:
+        return out
+    dt = np.diff(np.asarray(t_ns, dtype=np.int64)).astype(float) * 1e-9
+    if vel_world_mps is not None:
+        sp2 = (np.asarray(pos_sigma_m) / np.sqrt(3.0)) ** 2
+        sv = np.asarray(vel_sigma_mps) / np.sqrt(3.0)
+        wv = 1.0 / (dt**2 * 0.5 * (sv[:-1] ** 2 + sv[1:] ** 2) / 2.0)
+        D = sparse.diags([-np.ones(P - 1), np.ones(P - 1)], [0, 1], shape=(P - 1, P))
+        A = (sparse.diags(1.0 / sp2) + D.T @ sparse.diags(wv) @ D).tocsc()
+        disp = dt[:, None] * 0.5 * (vel_world_mps[:-1] + vel_world_mps[1:])
+        rhs = T[:, :3, 3] / sp2[:, None] + D.T @ (wv[:, None] * disp)
+        out[:, :3, 3] = np.stack([spsolve(A, rhs[:, j]) for j in range(3)], axis=-1)
+    if omega_cam_radps is not None:
+        wr = 1.0 / (np.asarray(rot_sigma_rad) / np.sqrt(3.0)) ** 2  # (P,)
+        sw = np.asarray(omega_sigma_radps)[:-1] / np.sqrt(3.0)
+        ww = 1.0 / (dt * sw) ** 2  # (P-1,)
+        wb = 1.0 / np.radians(0.1) ** 2  # gyro bias prior (deg/s scale)
+        R_meas = Rotation.from_matrix(T[:, :3, :3])
+        n = 3 * P + 3
+        rows = np.arange(3 * (P - 1))
+        for _ in range(gn_steps):
+            R0 = Rotation.from_matrix(out[:, :3, :3])
+            r_att = (R_meas * R0.inv()).as_rotvec()  # target of d_k (world frame)
+            Q0 = R0[:-1].inv() * R0[1:]
+            r_rate = (Rotation.from_rotvec(-omega_cam_radps[:-1] * dt[:, None]) * Q0).as_rotvec()  # at d = 0, b = 0
+            Rb = R0[1:].as_matrix()  # d(res)/d(d_{k+1}) = R_{k+1}^T, d(res)/d(d_k) = -R_{k+1}^T, d(res)/db = dt
+            RbT = np.transpose(Rb, (0, 2, 1))
+            ii, jj, vv = [], [], []
+            for a in range(3):
+                for c in range(3):
+                    ii += [rows[a::3], rows[a::3]]
+                    jj += [3 * np.arange(1, P) + c, 3 * np.arange(0, P - 1) + c]
+                    vv += [RbT[:, a, c], -RbT[:, a, c]]
+                ii.append(rows[a::3]), jj.append(np.full(P - 1, 3 * P + a)), vv.append(dt)
+            J = sparse.csr_matrix((np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))), shape=(3 * (P - 1), n))
+            Wr = sparse.diags(np.repeat(ww, 3))
+            H = J.T @ Wr @ J + sparse.diags(np.concatenate([np.repeat(wr, 3), np.full(3, wb)]))
+            g = -(J.T @ (Wr @ r_rate.reshape(-1))) + np.concatenate([(wr[:, None] * r_att).reshape(-1), np.zeros(3)])
+            x = spsolve(H.tocsc(), g)
+            out[:, :3, :3] = (Rotation.from_rotvec(x[: 3 * P].reshape(P, 3)) * R0).as_matrix()
+    return out
+
+
+def camera_track(cam: CameraCapture, window_s: float = 2.0, order: int = 2) -> np.ndarray:
+    """The camera's best pose track at its own pose samples (P, 4, 4) from the drone's data alone:
+    Savitzky-Golay smoothing (:func:`smooth_poses`), then, when the capture carries the drone's velocity
+    / angular velocity, the joint least-squares fit of samples and rates (:func:`fuse_rates`)."""
+    T = smooth_poses(cam.t_pose_ns, cam.T_world_cam, window_s, order) if window_s > 0 else cam.T_world_cam.copy()
+    if cam.has_velocity or cam.has_angular_velocity:
+        T = fuse_rates(cam.t_pose_ns, cam.T_world_cam, cam.pos_sigma_m, np.radians(cam.rot_sigma_deg), cam.vel_world_mps,
+                       cam.vel_sigma_mps, cam.omega_cam_radps, cam.omega_sigma_radps, T_start=T)  # fmt: skip
+    return T
+
+
 def smoothed_pose_at(cam: CameraCapture, t_ns: np.ndarray, window_s: float = 2.0, order: int = 2) -> np.ndarray:
-    """The camera's drone-pose track smoothed in time (:func:`smooth_poses`) at times (Q,) -> (Q, 4, 4)."""
-    return interpolate_poses(cam.t_pose_ns, smooth_poses(cam.t_pose_ns, cam.T_world_cam, window_s, order), t_ns)
+    """The camera's drone-pose track smoothed in time (:func:`camera_track`) at times (Q,) -> (Q, 4, 4)."""
+    return interpolate_poses(cam.t_pose_ns, camera_track(cam, window_s, order), t_ns)
 
 
 @dataclasses.dataclass
