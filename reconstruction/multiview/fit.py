@@ -54,7 +54,7 @@ from tqdm import tqdm
 from reconstruction.body import skeleton17 as sk
 from reconstruction.body.model import BodyModel, SkeletonBodyModel
 from reconstruction.capture import Capture
-from reconstruction.multiview.observations import fill_gaps, gather, interpolate_to_grid, median_in_time, reject_blunders, triangulate
+from reconstruction.multiview.observations import camera_track, fill_gaps, gather, interpolate_to_grid, median_in_time, reject_blunders, triangulate
 from reconstruction.prior import PosePrior, load_default_prior
 from skycap.skeleton import COCO17_FLIP
 
@@ -145,6 +145,11 @@ def _huber(e2: torch.Tensor, k: float) -> torch.Tensor:
     return torch.where(e <= k, e2, 2 * k * e - k * k)
 
 
+def _vee2(A: torch.Tensor) -> torch.Tensor:
+    """(K, 3) = vee(A - A^T) of matrices A (K, 3, 3): 2 sin(angle) x axis, the rotation vector x 2 for small angles."""
+    return torch.stack([A[:, 2, 1] - A[:, 1, 2], A[:, 0, 2] - A[:, 2, 0], A[:, 1, 0] - A[:, 0, 1]], -1)
+
+
 def _rotvec_to_R(w: torch.Tensor) -> torch.Tensor:
     return sk.axis_angle_to_matrix(w)
 
@@ -204,7 +209,8 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     model = model.to(dev)
     prior = prior.to(dev)
     _, shape0, (ro0, pose0, tr0) = initial_guess(capture, t_grid)
-    obs = gather(capture, t_grid, cfg.cam_smooth_window_s, cfg.cam_smooth_order)
+    tracks = [camera_track(c, cfg.cam_smooth_window_s, cfg.cam_smooth_order) for c in capture.cameras]  # once per camera
+    obs = gather(capture, t_grid, tracks=tracks)
     T = len(t_grid)
     N = len(obs.t_ns)
     f = lambda a: torch.as_tensor(np.asarray(a), dtype=dt, device=dev)  # noqa: E731
@@ -216,7 +222,7 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     # Cameras: the refined track is the time-smoothed drone track plus a correction that is piecewise
     # linear in time (knots every cam_knot_s per camera: smooth by construction, few unknowns, well
     # conditioned). The GPS/IMU prior compares the refined track with EVERY drone pose sample.
-    samp = _pose_samples(capture, obs, t_grid, cfg.cam_smooth_window_s, cfg.cam_smooth_order)
+    samp = _pose_samples(capture, obs, t_grid, tracks)
     R_raw_s, p_raw_s = f(samp["T_est"][:, :3, :3]), f(samp["T_est"][:, :3, 3])
     R_sm_s, p_sm_s = f(samp["T_smooth"][:, :3, :3]), f(samp["T_smooth"][:, :3, 3])
     R_sm_f, p_sm_f = f(obs.T_smooth[:, :3, :3]), f(obs.T_smooth[:, :3, 3])
@@ -241,29 +247,26 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     shape = f(shape0).requires_grad_()
     dw = torch.zeros(NK, 3, dtype=dt, device=dev, requires_grad=True)
     dp = torch.zeros(NK, 3, dtype=dt, device=dev, requires_grad=True)
-    params = [ro, pose, tr, shape] + ([dw, dp] if cfg.refine_cameras else [])
     # consecutive frames of the same camera (for camera smoothness)
     knot_runs = [(k0_, k1_) for k0_, k1_ in knots["cam_ranges"] if k1_ - k0_ >= 3]
     noise2 = cfg.expected_noise_px**2
     rc = _rate_constraints(capture, samp, knots) if (cfg.use_rates and cfg.refine_cameras) else {}
     rv, ro_ = rc.get("vel"), rc.get("omega")
     if rv is not None:
-        rv = {k: (torch.as_tensor(v, device=dev) if k.endswith("i0") else f(v)) for k, v in rv.items()}
+        rv = {k: (torch.as_tensor(v, device=dev) if k.endswith("i0") else f(v)[:, None] if k.endswith("_w") else f(v)) for k, v in rv.items()}
     gyro_bias = torch.zeros(capture.num_cameras, 3, dtype=dt, device=dev, requires_grad=True)
     if ro_ is not None:
-        ro_ = {k: (torch.as_tensor(v, device=dev) if k.endswith("i0") or k == "cam" else f(v)) for k, v in ro_.items()}
-        params.append(gyro_bias)
+        ro_ = {k: (torch.as_tensor(v, device=dev) if k.endswith("i0") or k == "cam" else f(v)[:, None] if k.endswith("_w") else f(v)) for k, v in ro_.items()}
     bias_sig = np.radians(cfg.gyro_bias_sigma_degps) / np.sqrt(3.0)
 
     def knot_interp(c: torch.Tensor, i0: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        return (1 - w)[:, None] * c[i0] + w[:, None] * c[i0 + 1]
+        """Piecewise-linear corrections c (NK, 3) at points with knot index i0 (K,) and weight w (K, 1)."""
+        return (1 - w) * c[i0] + w * c[i0 + 1]
 
     def cam_poses():
         """Refined poses at the frames (N) and at the drone pose samples (M)."""
-        dwf = (1 - wf) * dw[kf0] + wf * dw[kf0 + 1]
-        dpf = (1 - wf) * dp[kf0] + wf * dp[kf0 + 1]
-        dws = (1 - ws) * dw[ks0] + ws * dw[ks0 + 1]
-        dps = (1 - ws) * dp[ks0] + ws * dp[ks0 + 1]
+        dwf, dpf = knot_interp(dw, kf0, wf), knot_interp(dp, kf0, wf)
+        dws, dps = knot_interp(dw, ks0, ws), knot_interp(dp, ks0, ws)
         return _rotvec_to_R(dwf) @ R_sm_f, p_sm_f + dpf, _rotvec_to_R(dws) @ R_sm_s, p_sm_s + dps
 
     def cam_energy(Rs: torch.Tensor, pss: torch.Tensor) -> torch.Tensor:
@@ -272,7 +275,7 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
         # the capture's sigmas are RMS 3D errors (sqrt of the covariance trace): per axis sigma^2 / 3
         e_p = 3.0 * ((pss - p_raw_s) ** 2).sum(-1) / ps**2
         dR = Rs @ R_raw_s.transpose(-1, -2)
-        e_r = 3.0 * (torch.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1) ** 2).sum(-1) / 4 / rs**2
+        e_r = 3.0 * (_vee2(dR) ** 2).sum(-1) / 4 / rs**2
         E_cam = cfg.w_cam_prior * 0.5 * (_huber(e_p, 3.0).sum() + _huber(e_r, 3.0).sum())
         # motion smoothness of the corrections (second differences at the knots)
         for k0_, k1_ in knot_runs:
@@ -286,7 +289,7 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
             Ra = _rotvec_to_R(knot_interp(dw, ro_["a_i0"], ro_["a_w"])) @ ro_["Ra"]
             Rb = _rotvec_to_R(knot_interp(dw, ro_["b_i0"], ro_["b_w"])) @ ro_["Rb"]
             A = ro_["M"].transpose(-1, -2) @ Ra.transpose(-1, -2) @ Rb
-            d = 0.5 * torch.stack([A[:, 2, 1] - A[:, 1, 2], A[:, 0, 2] - A[:, 2, 0], A[:, 1, 0] - A[:, 0, 1]], -1)
+            d = 0.5 * _vee2(A)
             d = d + ro_["span"][:, None] * gyro_bias[ro_["cam"]]
             E_cam = E_cam + 0.5 * ((d / ro_["sigma"][:, None]) ** 2).sum() + 0.5 * (gyro_bias**2).sum() / bias_sig**2
         return E_cam
@@ -369,11 +372,10 @@ def _knots(samp: dict, obs, spacing_s: float) -> dict:
     return {"n": n0, "f_i0": f_i0, "f_w": f_w, "s_i0": s_i0, "s_w": s_w, "cam_ranges": ranges, "times": times}
 
 
-def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: float, smooth_order: int = 2) -> dict:
-    """The drones' pose samples covering the frames: times (M,), T_est/T_smooth (M, 4, 4), sigmas (M,),
-    per camera index ranges, and for every frame n its interval j0[n] (into the M samples) and weight beta[n]."""
-    from reconstruction.multiview.observations import camera_track
-
+def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, tracks: list[np.ndarray]) -> dict:
+    """The drones' pose samples covering the frames: times (M,), T_est/T_smooth (M, 4, 4) (``tracks``: each
+    camera's reference track at all its pose samples, :func:`camera_track`), sigmas (M,), per camera index
+    ranges, and for every frame n its interval j0[n] (into the M samples) and weight beta[n]."""
     ts, Te, Tsm, ps, rs, ranges, src = [], [], [], [], [], [], []
     j0 = np.zeros(len(obs.t_ns), dtype=np.int64)
     beta = np.zeros(len(obs.t_ns))
@@ -391,8 +393,7 @@ def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, smooth_window_s: fl
         if len(t_s) < 2:  # a single pose: use it at both ends
             t_s = np.array([lo - 1, hi + 1], dtype=np.int64)
             T_s = np.stack([cam.T_world_cam[idx[0] if len(idx) else 0]] * 2)
-        smooth_all = camera_track(cam, smooth_window_s, smooth_order)
-        T_sm = smooth_all[idx] if len(idx) == len(t_s) else T_s
+        T_sm = tracks[ci][idx] if len(idx) == len(t_s) else T_s
         k = np.clip(np.searchsorted(t_s, tf, side="right") - 1, 0, len(t_s) - 2)
         j0[sl] = m0 + k
         beta[sl] = np.clip((tf - t_s[k]) / np.maximum(t_s[k + 1] - t_s[k], 1), 0.0, 1.0)

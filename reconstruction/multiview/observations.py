@@ -150,8 +150,11 @@ class Observations:
     cam_slices: list  # per camera slice into N
 
 
-def gather(capture: Capture, t_grid_ns: np.ndarray, smooth_window_s: float = 2.0, smooth_order: int = 2) -> Observations:
-    """Flatten the capture's frames (only those within the grid's time span) for fitting."""
+def gather(
+    capture: Capture, t_grid_ns: np.ndarray, smooth_window_s: float = 2.0, smooth_order: int = 2, tracks: list[np.ndarray] | None = None
+) -> Observations:
+    """Flatten the capture's frames (only those within the grid's time span) for fitting. ``T_smooth`` comes
+    from ``tracks`` (each camera's :func:`camera_track` at its pose samples) when given, else is computed."""
     t_grid_ns = np.asarray(t_grid_ns, dtype=np.int64)
     if len(t_grid_ns) < 2:
         raise CaptureError("the output time grid needs at least 2 times")
@@ -172,7 +175,10 @@ def gather(capture: Capture, t_grid_ns: np.ndarray, smooth_window_s: float = 2.0
         parts["conf"].append(np.nan_to_num(cf))
         parts["K"].append(c.K_at(t))
         parts["T"].append(c.pose_at(t))
-        parts["Ts"].append(smoothed_pose_at(c, t, smooth_window_s, smooth_order) if smooth_window_s > 0 else c.pose_at(t))
+        if tracks is not None:
+            parts["Ts"].append(interpolate_poses(c.t_pose_ns, tracks[ci], t))
+        else:
+            parts["Ts"].append(smoothed_pose_at(c, t, smooth_window_s, smooth_order) if smooth_window_s > 0 else c.pose_at(t))
         parts["ps"].append(ps)
         parts["rs"].append(np.radians(rs))
         slices.append(slice(n0, n0 + len(t)))
