@@ -30,7 +30,7 @@ from reconstruction.monocular.ba import BAConfig, bundle_adjust  # noqa: E402
 from reconstruction.monocular.dictionary import load_dictionary  # noqa: E402
 from reconstruction.monocular.evaluate import EvalSetup, load_motion, make_view  # noqa: E402
 from reconstruction.monocular.perspective import orthographic_to_world, perspective_bundle_adjust  # noqa: E402
-from reconstruction.monocular.pipeline import reconstruct_monocular, MonocularConfig  # noqa: E402
+from reconstruction.monocular.pipeline import MonocularConfig, model_fit, reconstruct_monocular  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import describe_machine  # noqa: E402
@@ -88,6 +88,13 @@ def main() -> int:
         rp = perspective_bundle_adjust(W, res.weights, T_wc, view.K, X0, d.limbs, cfg=pc, t_s=t_s)
         tp.append(time.perf_counter() - t0)
     rows.append(("BA perspective (1 start, torch)", min(tp), rp.iterations))
+    # the body model fitted after it (model_fit: the multi-view product fit with one camera)
+    tm = []
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        model_fit(W, res.weights, T_wc, view.K, view.t_ns[: args.frames], rp.X, cfg.model)
+        tm.append(time.perf_counter() - t0)
+    rows.append(("body model fit (torch)", min(tm), cfg.model.fit.iters))
     print("machine:", describe_machine(f"numpy {np.__version__}", "BLAS threads 1", f"torch {torch.__version__} threads 1"))
     print(f"clip: {src}, {T} frames, 17 joints, dictionary K={d.num_bases}; best of {args.repeat}")
     print(f"load average (1, 5, 15 min) at the end: {os.getloadavg()}")

@@ -159,6 +159,11 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
         out["mpjpe_mm_ba_perspective"] = float(mpjpe_mm(Xp, view.gt_ned_m, joints=LIMB_JOINTS))
         out["perspective_seconds"] = res.perspective_seconds
         out["perspective_iterations"] = res.ba_perspective.iterations
+    if res.model is not None:
+        Xm = res.model.joints_ned
+        out["pa_mpjpe_mm_model"], out["per_joint_mm_model"] = _score(np.swapaxes(Xm, 1, 2), view.gt_ned_m)
+        out["mpjpe_mm_model"] = float(mpjpe_mm(Xm, view.gt_ned_m, joints=LIMB_JOINTS))
+        out["model_seconds"] = res.model_seconds
     out["init_seconds"] = res.init_seconds
     out["ba_seconds"] = res.ba_seconds
     out["total_seconds"] = total
@@ -189,7 +194,7 @@ def sweep_means(rows: list[dict]) -> dict:
     omegas = sorted({r["angular_velocity_deg_s"] for r in rows})
     keys = ["pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_paper_order", "pa_mpjpe_mm_ba_no_articulation",
             "pa_mpjpe_mm_ba_extended",
-            "pa_mpjpe_mm_ba_perspective", "mpjpe_mm_ba_perspective"]
+            "pa_mpjpe_mm_ba_perspective", "mpjpe_mm_ba_perspective", "pa_mpjpe_mm_model", "mpjpe_mm_model"]
     out = {"angular_velocity_deg_s": omegas}
     for k in keys:
         vals = [[r[k] for r in rows if r["angular_velocity_deg_s"] == w and k in r] for w in omegas]
@@ -214,6 +219,7 @@ def plot_sweep(means: dict, path: str | Path, title: str = "") -> Path:
         ("pa_mpjpe_mm_ba", "BA (articulation warm-up)", "^-"),
         ("pa_mpjpe_mm_ba_extended", "BA extended (ours)", "d:"),
         ("pa_mpjpe_mm_ba_perspective", "BA perspective, known cameras (ours)", "v-"),
+        ("pa_mpjpe_mm_model", "body model after BA perspective (ours)", "P-"),
     ]:
         if k in means:
             ax.plot(w, means[k], st, label=lab)

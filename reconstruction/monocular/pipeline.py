@@ -14,7 +14,13 @@
    R_t to it, with the poses expressed in the world frame);
 4. optionally (``perspective=True``, needs the camera poses and intrinsics) the perspective BA of
    :mod:`reconstruction.monocular.perspective` in the world frame (NED metres), started from the paper-order
-   BA and from the extended BA placed in the world, keeping the lower objective.
+   BA and from the extended BA placed in the world, keeping the lower objective;
+5. then (``MonocularConfig.model.enabled``, on by default when the perspective BA runs) the body model fitted to
+   the keypoints with the drone's camera poses, started from the perspective BA: the multi-view product fit
+   (:func:`reconstruction.multiview.fit.fit_capture`) with one camera -- the skeleton body model with one shape
+   for the clip, the learned pose prior and joint limits, temporal smoothness, a robust 2D term with left/right
+   swap handling -- which settles the depth ambiguities that the dictionary's sparse code leaves
+   (:func:`model_fit`; result ``MonocularResult.model``).
 
 Poses come back in the orthographic camera's pixel units; :func:`to_world_metric` places them in the
 world (NED, metres) using the camera poses and an assumed body size.
@@ -37,13 +43,14 @@ from reconstruction.monocular.perspective import (
     orthographic_to_world,
     perspective_bundle_adjust,
 )
+from reconstruction.multiview.fit import FitConfig, FitResult
 from skycap.errors import SkycapError
 from reconstruction.monocular.single_frame import InitConfig, InitResult, initialise
 from reconstruction.monocular.tracks import temporal_outlier_mask, track_noise_px
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TrackConfig", "MonocularConfig", "MonocularResult", "reconstruct_monocular", "to_world_metric"]
+__all__ = ["TrackConfig", "ModelFitConfig", "MonocularConfig", "model_fit", "MonocularResult", "reconstruct_monocular", "to_world_metric"]
 
 
 @dataclasses.dataclass
@@ -63,6 +70,22 @@ class ExtensionConfig:
     rot_prior: float = 2.0  # weight of the drone-attitude prior on R_t (used when camera poses are known)
 
 
+def _model_fit_defaults() -> FitConfig:
+    # one view: the pose prior must settle what the image cannot (limb depth), so it weighs more than with
+    # several views (0.1); the camera stays the drone's smoothed track (one view cannot correct it)
+    return FitConfig(w_pose_prior=0.5, iters=400, refine_cameras=False)
+
+
+@dataclasses.dataclass
+class ModelFitConfig:
+    """Beyond the paper: the body model fitted after the perspective BA (step 5 of the module docstring)."""
+
+    enabled: bool = True
+    fit: FitConfig = dataclasses.field(default_factory=_model_fit_defaults)
+    pos_sigma_m: float = 0.5  # the drone's camera position and attitude uncertainty (RMS 3D; used when the
+    rot_sigma_deg: float = 2.0  # fit refines the camera, ``fit.refine_cameras``)
+
+
 @dataclasses.dataclass
 class MonocularConfig:
     tracks: TrackConfig = dataclasses.field(default_factory=TrackConfig)
@@ -70,6 +93,7 @@ class MonocularConfig:
     ba: BAConfig = dataclasses.field(default_factory=BAConfig)
     extension: ExtensionConfig = dataclasses.field(default_factory=ExtensionConfig)
     perspective: PerspectiveConfig = dataclasses.field(default_factory=PerspectiveConfig)
+    model: ModelFitConfig = dataclasses.field(default_factory=ModelFitConfig)
     ablation_no_articulation: bool = True  # also run BA with gamma = 0 (the paper's "BA w/o art.")
     ablation_paper_order: bool = True  # also run the paper's BA exactly (gamma from the start, L by SVD) when the
     # default BA differs from it (adaptive gamma warm-up, adult-proportion L; see BAConfig); the perspective BA
@@ -89,6 +113,8 @@ class MonocularResult:
     ba_perspective: PerspectiveResult | None = None  # world joints (needs camera poses and K)
     perspective_seconds: float = 0.0
     ba_paper: BAResult | None = None  # the paper's BA exactly (BAConfig.paper); None unless the default differs
+    model: FitResult | None = None  # the body model fitted after the perspective BA (world joints and parameters)
+    model_seconds: float = 0.0
 
 
 def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
@@ -192,10 +218,57 @@ def reconstruct_monocular(
                 for X0 in starts]  # fmt: skip
         persp = min(runs, key=lambda r: r.objective_final_sigma[1])
         persp_s = time.perf_counter() - t0
+    model, model_s = None, 0.0
+    if persp is not None and cfg.model.enabled:
+        t0 = time.perf_counter()
+        t_f = np.asarray(t_ns, dtype=np.int64) if t_ns is not None else np.round(np.arange(T) * dt_s * 1e9).astype(np.int64)
+        model = model_fit(W_px, conf, np.asarray(T_world_cam, dtype=float), np.asarray(K, dtype=float), t_f, persp.X, cfg.model)
+        model_s = time.perf_counter() - t0
     return MonocularResult(
         init=init, ba=ba, ba_no_articulation=ba0, ba_extended=ext, weights=w, init_seconds=init_s, ba_seconds=ba_s,
         ba_extended_frame=frame, ba_perspective=persp, perspective_seconds=persp_s, ba_paper=ba_paper,
+        model=model, model_seconds=model_s,
     )  # fmt: skip
+
+
+def model_fit(
+    W_px: np.ndarray,
+    confidence: np.ndarray,
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    t_ns: np.ndarray,
+    X0: np.ndarray,
+    cfg: ModelFitConfig | None = None,
+) -> FitResult:
+    """The body model fitted to one camera's keypoints, started from 3D joints (step 5 of the module docstring).
+
+    Args:
+        W_px: (T, 2, 17) keypoints in pixels (NaN where missing).
+        confidence: (T, 17) in [0, 1] (0 where missing).
+        T_world_cam: (T, 4, 4) the drone's camera poses at the frames (world NED).
+        K: (3, 3) or (T, 3, 3) intrinsics.
+        t_ns: (T,) frame times, increasing.
+        X0: (T, 17, 3) the start (world NED metres), e.g. the perspective BA's joints.
+
+    Returns the fit at the frame times (:class:`reconstruction.multiview.fit.FitResult`: joints, model
+    parameters, the camera track used).
+    """
+    from reconstruction.capture import Capture, CameraCapture
+    from reconstruction.multiview.fit import fit_capture
+
+    cfg = cfg or ModelFitConfig()
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    T = len(t_ns)
+    Kf = np.asarray(K, dtype=float)
+    Kf = np.repeat(Kf[None], T, axis=0) if Kf.ndim == 2 else Kf
+    conf = np.where(np.isfinite(W_px).all(1), np.asarray(confidence, dtype=float), 0.0)
+    cam = CameraCapture(
+        name="camera", t_pose_ns=t_ns, T_world_cam=T_world_cam, pos_sigma_m=np.full(T, cfg.pos_sigma_m),
+        rot_sigma_deg=np.full(T, cfg.rot_sigma_deg), t_intrinsics_ns=t_ns, K=Kf, width_px=int(round(2 * Kf[0, 0, 2])),
+        height_px=int(round(2 * Kf[0, 1, 2])), t_frame_ns=t_ns, keypoints_px=np.nan_to_num(np.swapaxes(W_px, 1, 2)),
+        confidence=conf,
+    )  # fmt: skip
+    return fit_capture(Capture([cam]), t_ns, cfg.fit, progress=False, init_joints_ned=X0)
 
 
 def to_world_metric(

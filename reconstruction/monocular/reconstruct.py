@@ -8,7 +8,9 @@ with :func:`reconstruction.export.export_motion`, plus ``config.toml`` and ``sum
 
 Placement in the world: the default (``variant="perspective"``) is the perspective BA with the drone's camera
 poses (:mod:`reconstruction.monocular.perspective`): the body's metric scale from an adult bone-length prior and
-the orbit's parallax (``summary.json``: ``body_scale``). The orthographic variants have no metric scale: the
+the orbit's parallax (``summary.json``: ``body_scale``); then, by default (``cfg.model.enabled``), the body model
+fitted from it (:func:`reconstruction.monocular.pipeline.model_fit`) gives the exported joints and the model
+parameters (``root_orient``, ``pose``, ``transl``, ``shape`` in the npz, as from the multi-view path). The orthographic variants have no metric scale: the
 person is given the RMS joint radius of the dictionary's mean pose (or ``body_rms_radius_m``) and placed along
 the camera ray of its 2D centre at the depth that this size implies
 (:func:`reconstruction.monocular.pipeline.to_world_metric`).
@@ -111,9 +113,14 @@ def reconstruct_capture(
     else:
         ba, frame = res.ba, "canonical"
     radius = body_rms_radius_m
+    params = {"S_orthographic_px": ba.S, "R_orthographic": ba.R, "weights": res.weights, "init_S_px": res.init.S}
+    shape = None
     if persp:
         joints = res.ba_perspective.X  # placed by the perspective BA with the camera poses
         radius = cfg.perspective.body_rms_radius_m
+        if res.model is not None:  # the body model fitted after it: joints and model parameters, as the multi-view path
+            joints, shape = res.model.joints_ned, res.model.shape
+            params = {**params, **res.model.params()}
     else:
         if radius is None:
             mp = d.mean_pose if d.mean_pose is not None else d.bases[0]
@@ -124,12 +131,12 @@ def reconstruct_capture(
     save_config(cfg, out / "config.toml")
     cams = [{"name": cam.name, "t_ns": t_frame_ns, "T_world_cam": T_wc, "K": K[-1], "width_px": cam.width_px,
              "height_px": cam.height_px}]  # fmt: skip
-    params = {"S_orthographic_px": ba.S, "R_orthographic": ba.R, "weights": res.weights, "init_S_px": res.init.S}
-    paths = export_motion(out, joints, t_frame_ns, params=params, cameras=cams, capture=cap, rrd=rrd)
+    paths = export_motion(out, joints, t_frame_ns, params=params, shape=shape, cameras=cams, capture=cap, rrd=rrd)
     summary = {
         "method": "monocular", "variant": variant, "camera": cam.name, "detector": cam.detectors[det],
         "frames": int(len(t_frame_ns)), "init_seconds": res.init_seconds, "ba_seconds": res.ba_seconds,
-        "perspective_seconds": res.perspective_seconds,
+        "perspective_seconds": res.perspective_seconds, "body_model_fit": res.model is not None,
+        "model_seconds": res.model_seconds,
         "body_rms_radius_m": radius, "outputs": {k: str(v) for k, v in paths.items()},
         **({"body_scale": res.ba_perspective.body_scale,
             "bone_rms_m": res.ba_perspective.body_scale * cfg.perspective.body_bone_rms_m} if persp else {}),

@@ -60,7 +60,7 @@ from skycap.skeleton import COCO17_FLIP
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FitConfig", "FitResult", "fit_capture", "initial_guess"]
+__all__ = ["FitConfig", "FitResult", "fit_capture", "initial_guess", "params_from_joints"]
 
 
 @dataclasses.dataclass
@@ -170,6 +170,13 @@ def initial_guess(capture: Capture, t_grid_ns: np.ndarray) -> tuple[np.ndarray, 
         from reconstruction.capture import CaptureError
 
         raise CaptureError("too few views to triangulate the person (need two cameras seeing each joint sometime)")
+    return params_from_joints(X)
+
+
+def params_from_joints(joints_ned: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """A start for the fit from 3D joints (T, 17, 3) world NED (finite) -> (the joints, shape (16,),
+    (root_orient (T, 3), pose (T, 11, 3), transl (T, 3))) of the skeleton model, by inverse kinematics."""
+    X = np.asarray(joints_ned, dtype=float)
     shape = sk.estimate_shape(X)
     R_root, R_loc, transl = sk.inverse_kinematics(X, shape)
     ro = Rotation.from_matrix(R_root).as_rotvec()
@@ -184,8 +191,13 @@ def fit_capture(
     model: BodyModel | None = None,
     prior: PosePrior | None = None,
     progress: bool = True,
+    init_joints_ned: np.ndarray | None = None,
 ) -> FitResult:
-    """Fit the body to a capture at output times ``t_grid_ns`` (T,) with ``cfg.method``."""
+    """Fit the body to a capture at output times ``t_grid_ns`` (T,) with ``cfg.method``.
+
+    init_joints_ned: (T, 17, 3) world NED, finite: the start at the grid times (e.g. a monocular
+    reconstruction, where nothing can be triangulated); default: robust triangulation of the capture.
+    """
     cfg = cfg or FitConfig()
     model = model or SkeletonBodyModel()
     prior = prior or load_default_prior()
@@ -196,19 +208,29 @@ def fit_capture(
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     try:
-        return fits[cfg.method](capture, np.asarray(t_grid_ns, dtype=np.int64), cfg, model, prior, progress)
+        t_start = time.perf_counter()  # fit_seconds include the start (triangulation)
+        t_grid = np.asarray(t_grid_ns, dtype=np.int64)
+        if init_joints_ned is not None:
+            X0 = np.asarray(init_joints_ned, dtype=float)
+            if X0.shape != (len(t_grid), 17, 3) or not np.all(np.isfinite(X0)):
+                raise ValueError(f"init_joints_ned must be finite with shape ({len(t_grid)}, 17, 3) (one pose per grid "
+                                 f"time), got {X0.shape}{'' if np.all(np.isfinite(X0)) else ' with NaN/inf'}")  # fmt: skip
+            start = params_from_joints(X0)
+        else:
+            # the paper path starts from the first few output times only (like AirCap's online estimate)
+            start = initial_guess(capture, t_grid if cfg.method == "product" else t_grid[: max(min(len(t_grid), 5), 2)])
+        return fits[cfg.method](capture, t_grid, cfg, model, prior, progress, start, t_start)
     finally:
         torch.set_num_threads(n_threads)
 
 
 # ----------------------------------------------------------------------------------------- product
-def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
-    t_start = time.perf_counter()
+def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -> FitResult:
     dev = torch.device(cfg.device)
     dt = torch.float32
     model = model.to(dev)
     prior = prior.to(dev)
-    _, shape0, (ro0, pose0, tr0) = initial_guess(capture, t_grid)
+    _, shape0, (ro0, pose0, tr0) = start
     tracks = [camera_track(c, cfg.cam_smooth_window_s, cfg.cam_smooth_order) for c in capture.cameras]  # once per camera
     obs = gather(capture, t_grid, tracks=tracks)
     T = len(t_grid)
@@ -218,7 +240,6 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress) -> FitResult:
     flip = list(COCO17_FLIP)
     uv_sw, conf_sw = uv[:, :, flip], conf[:, :, flip]
     K = f(obs.K)
-    R_est, p_est = f(obs.T_est[:, :3, :3]), f(obs.T_est[:, :3, 3])
     # Cameras: the refined track is the time-smoothed drone track plus a correction that is piecewise
     # linear in time (knots every cam_knot_s per camera: smooth by construction, few unknowns, well
     # conditioned). The GPS/IMU prior compares the refined track with EVERY drone pose sample.
@@ -472,15 +493,13 @@ def _rate_constraints(capture: Capture, samp: dict, knots: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------------- paper
-def _fit_paper(capture, t_grid, cfg, model, prior, progress) -> FitResult:
-    t_start = time.perf_counter()
+def _fit_paper(capture, t_grid, cfg, model, prior, progress, start, t_start) -> FitResult:
     dev = torch.device(cfg.device)
     dt = torch.float32
     model = model.to(dev)
     prior = prior.to(dev)
-    # first frame's start: robust triangulation of the first few output times (like AirCap's online estimate)
-    n_init = min(len(t_grid), 5)
-    _, shape0, (ro0, pose0, tr0) = initial_guess(capture, t_grid[: max(n_init, 2)])
+    # first frame's start: the start's first output time (robust triangulation, like AirCap's online estimate)
+    _, shape0, (ro0, pose0, tr0) = start
     f = lambda a: torch.as_tensor(np.asarray(a), dtype=dt, device=dev)  # noqa: E731
     C = capture.num_cameras
     D = max(c.num_detectors for c in capture.cameras)

@@ -21,7 +21,7 @@ def test_eval_monocular_cli_on_held_out_clip(cmu_dir, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     for k in ("pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_no_articulation", "per_joint_mm", "frames",
               "init_seconds", "ba_seconds", "pa_mpjpe_mm_ba_extended", "pa_mpjpe_mm_ba_perspective", "mpjpe_mm_ba_perspective",
-              "perspective_seconds"):  # fmt: skip
+              "perspective_seconds", "pa_mpjpe_mm_model", "mpjpe_mm_model", "model_seconds"):  # fmt: skip
         assert k in m, k
     assert m["frames"] == 121
     assert set(m["per_joint_mm"]) == {"shoulder", "elbow", "wrist", "hip", "knee", "ankle"}
@@ -29,6 +29,7 @@ def test_eval_monocular_cli_on_held_out_clip(cmu_dir, tmp_path):
     # the bundle adjustment must clearly improve on the single-frame initialisation
     assert m["pa_mpjpe_mm_ba"] < 0.8 * m["pa_mpjpe_mm_init"]
     assert m["pa_mpjpe_mm_ba_perspective"] < 0.8 * m["pa_mpjpe_mm_init"]
+    assert m["pa_mpjpe_mm_model"] < 0.8 * m["pa_mpjpe_mm_init"]
     assert (out / "config.toml").is_file()
     assert not set(m["dictionary_clips"]) & set(EVAL_CLIPS)
 

@@ -13,12 +13,10 @@ from reconstruction.monocular.perspective import (
     orthographic_to_world,
     perspective_bundle_adjust,
 )
-from reconstruction.synth import look_at_T_world_cam
 from skycap.errors import SkycapError
-from skycap.frames import intrinsics_matrix
 from skycap.skeleton import COCO17_LIMBS
 
-from body_fixture import UPRIGHT_BODY
+from body_fixture import UPRIGHT_BODY, orbit_view
 
 
 
@@ -31,14 +29,8 @@ def _scene(T=48, fps=24.0, omega_deg_s=30.0, yaw_rate_deg_s=20.0):
     Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
     root = np.stack([0.8 * t, 0.2 * t, np.zeros(T)], -1)
     X = np.einsum("tij,kj->tki", Rz, UPRIGHT_BODY) + root[:, None]
-    centre = X.mean(1)
-    ang = np.radians(omega_deg_s) * t
-    cam = np.stack([centre[:, 0] + 4 * np.cos(ang), centre[:, 1] + 4 * np.sin(ang), np.full(T, -2.0)], -1)
-    T_wc = look_at_T_world_cam(cam, centre)
-    K = intrinsics_matrix(1500.0, 1500.0, 960.0, 540.0)
-    Xc = np.einsum("tji,tkj->tki", T_wc[:, :3, :3], X - T_wc[:, None, :3, 3])
-    uv = 1500.0 * Xc[..., :2] / Xc[..., 2:3] + np.array([960.0, 540.0])
-    return X, np.swapaxes(uv, 1, 2), T_wc, K
+    W, T_wc, K = orbit_view(X, t, omega_deg_s)
+    return X, W, T_wc, K
 
 
 def _body_bone_rms() -> float:
