@@ -260,11 +260,12 @@ def model_fit(
     t_ns = np.asarray(t_ns, dtype=np.int64)
     T = len(t_ns)
     Kf = np.asarray(K, dtype=float)
-    Kf = np.repeat(Kf[None], T, axis=0) if Kf.ndim == 2 else Kf
+    # one K for the clip (3, 3) or one per frame (T, 3, 3)
+    t_K, Kf = (t_ns[:1], Kf[None]) if Kf.ndim == 2 else (t_ns, Kf)
     conf = np.where(np.isfinite(W_px).all(1), np.asarray(confidence, dtype=float), 0.0)
     cam = CameraCapture(
         name="camera", t_pose_ns=t_ns, T_world_cam=T_world_cam, pos_sigma_m=np.full(T, cfg.pos_sigma_m),
-        rot_sigma_deg=np.full(T, cfg.rot_sigma_deg), t_intrinsics_ns=t_ns, K=Kf, width_px=int(round(2 * Kf[0, 0, 2])),
+        rot_sigma_deg=np.full(T, cfg.rot_sigma_deg), t_intrinsics_ns=t_K, K=Kf, width_px=int(round(2 * Kf[0, 0, 2])),
         height_px=int(round(2 * Kf[0, 1, 2])), t_frame_ns=t_ns, keypoints_px=np.nan_to_num(np.swapaxes(W_px, 1, 2)),
         confidence=conf,
     )  # fmt: skip

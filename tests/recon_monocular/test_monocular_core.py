@@ -263,12 +263,16 @@ def _noisy_orthographic_sequence(d: PoseDictionary, T=40, seed=11, noise=0.01):
     return S, R, W
 
 
+def _perturbed_start(S, R, seed):
+    """A BA start near the truth: poses and rotations jittered by 0.05, rotations back on the Stiefel manifold."""
+    rng = np.random.default_rng(seed)
+    return S + 0.05 * rng.normal(size=S.shape), polar_2x3(R + 0.05 * rng.normal(size=R.shape))
+
+
 def test_bundle_adjust_decreases_objective_monotonically(dictionary):
     S, R, W = _noisy_orthographic_sequence(dictionary)
     T = W.shape[0]
-    rng = np.random.default_rng(12)
-    S0 = S + 0.05 * rng.normal(size=S.shape)
-    R0 = polar_2x3(R + 0.05 * rng.normal(size=R.shape))
+    S0, R0 = _perturbed_start(S, R, 12)
     w = np.ones((T, 17))
     for cfg in (
         BAConfig.paper(gamma=1.0, outer_iters=25, tol=0.0),
@@ -368,9 +372,7 @@ def test_rank1_fixed_proportions_exact_and_least_squares():
 def test_warmup_accept_reject_and_paper_fallback(dictionary):
     S, R, W = _noisy_orthographic_sequence(dictionary)
     T = W.shape[0]
-    rng = np.random.default_rng(13)
-    S0 = S + 0.05 * rng.normal(size=S.shape)
-    R0 = polar_2x3(R + 0.05 * rng.normal(size=R.shape))
+    S0, R0 = _perturbed_start(S, R, 13)
     w = np.ones((T, 17))
     paper = bundle_adjust(W, w, S0, R0, COCO17_LIMBS, BAConfig.paper(outer_iters=15, tol=0.0))
     assert paper.warmup_accepted is None
