@@ -24,6 +24,10 @@ A person detection is an image box with per-edge pixel variance, taken by a came
   ground plane ``down = ground_down_m``, raised by half the prior height; the covariance is wide (``bearing_range_sigma_m``) along the ray, so in a Kalman
   update it carries only the two bearing directions.
 
+Walking along the view ray, the box's bottom is the nearest foot, which leads the pelvis toward the camera:
+with the person's velocity (the filter's prediction; ``person_velocity_ned_mps``), the height and ground
+modes move the centre away from the camera by ``stride_lead_s * |v . u|`` (:attr:`MeasurementConfig.stride_lead_s`).
+
 The covariance is first-order propagation ``J diag(inputs) J^T`` of: the four box edges (per-edge pixel
 variance, floored at ``min_edge_var_px2``), the person-height prior (``person_height_sigma_m``), the camera
 position (3) and the camera orientation (3, small world-frame rotations ``R' = exp([dtheta]_x) R``, the
@@ -103,6 +107,13 @@ class MeasurementConfig:
     #: adult height spread plus posture (crouching/bending shrink the box; the ground term covers that)
     person_height_sigma_m: float = 0.15
     ground_sigma_m: float = 0.15  #: the feet's height above the ground plane (uneven ground, steps, jumps)
+    #: a walking person's box bottom is the NEAREST foot, which leads the pelvis toward the camera by a share
+    #: of the stride when the person walks along the view ray (the stride grows with speed): the measured centre
+    #: is then too close to the camera by stride_lead_s * |v . u| (v the person's horizontal velocity, u the
+    #: horizontal view direction), and is moved back by that much when the person's velocity is known. Fitted on
+    #: the simulator's walking person against ground-truth boxes (bias -0.16 m at |v . u| ~ 1 m/s, -0.02 m
+    #: walking across the view). 0 = off.
+    stride_lead_s: float = 0.14
     mode: MeasurementMode = "height_and_ground"  #: the model :func:`measurements_from_detections` uses
     min_edge_var_px2: float = 4.0  #: floor for the per-edge variance (detectors report 0 = unknown)
     bearing_range_sigma_m: float = 200.0  #: along-ray std of a bearing-only measurement
@@ -202,6 +213,21 @@ def _bearing_point(edges: np.ndarray, c: np.ndarray, R_wc: np.ndarray, K_inv: np
     return c + range_m * r / np.linalg.norm(r)
 
 
+def _stride_lead_correction(ray: np.ndarray, velocity_ned_mps: np.ndarray | None, lead_s: float) -> np.ndarray:
+    """(3,) shift of a measured centre away from the camera along the horizontal view direction of ``ray``
+    (camera -> person): ``lead_s * |v_h . u_h|`` (see :attr:`MeasurementConfig.stride_lead_s`); zero without a
+    finite velocity."""
+    if velocity_ned_mps is None or lead_s <= 0:
+        return np.zeros(3)
+    v = np.asarray(velocity_ned_mps, dtype=float).reshape(3)
+    u = np.array([ray[0], ray[1], 0.0])
+    n = float(np.linalg.norm(u))
+    if not np.all(np.isfinite(v)) or n < 1e-9:
+        return np.zeros(3)
+    u /= n
+    return lead_s * abs(float(v[0] * u[0] + v[1] * u[1])) * u
+
+
 #: the inputs of a measurement model, in Jacobian column order: 4 box edges (px), person height (m), camera
 #: position (3, m), camera rotation (3, rad, world frame), ground height (m); and the central-difference steps
 _EDGES, _HEIGHT, _GROUND = [0, 1, 2, 3], 4, 11
@@ -233,6 +259,7 @@ def measurement_from_box(
     range_hint_m: float | None = None,
     ground_down_m: float = 0.0,
     edge_var_px2: np.ndarray | None = None,
+    person_velocity_ned_mps: np.ndarray | None = None,
     config: MeasurementConfig = MeasurementConfig(),
 ) -> PositionMeasurement:
     """One box -> a 3D measurement of the person's centre with covariance.
@@ -247,6 +274,8 @@ def measurement_from_box(
         mode: "height_prior" or "bearing" (see module doc).
         range_hint_m: bearing mode: range along the ray to place the point at (e.g. from the filter);
             None = intersect with the plane ``down = ground_down_m - person_height_m / 2``.
+        person_velocity_ned_mps: (3,) the person's velocity (e.g. the filter's prediction) or None: the
+            height-prior and ground modes then correct the nearest-foot lead (``config.stride_lead_s``).
 
     Returns:
         :class:`PositionMeasurement`.
@@ -339,6 +368,7 @@ def measurement_from_box(
         # in front of the camera
         if (R0.T @ (p - c0))[2] <= 0:
             raise MeasurementError("the measured person lies behind the camera; check T_world_cam")
+        p = p + _stride_lead_correction(p - c0, person_velocity_ned_mps, config.stride_lead_s)
 
     J = _jacobian(model, edges, H)
     if mode == "bearing":
@@ -382,6 +412,7 @@ def measurements_from_detections(
     range_hint_m: float | None = None,
     ground_down_m: float = 0.0,
     min_score: float = 0.0,
+    person_velocity_ned_mps: np.ndarray | None = None,
     config: MeasurementConfig = MeasurementConfig(),
 ) -> list[PositionMeasurement]:
     """Every usable "person" box of a :class:`Detections` message -> measurements (bad boxes are skipped
@@ -400,7 +431,8 @@ def measurements_from_detections(
     for b in det.boxes:
         if b.label != "person" or not (b.score >= min_score):
             continue
-        kw = dict(t_ns=det.header.t_measurement_ns, source_id=det.header.sender_id, ground_down_m=ground_down_m, config=config)
+        kw = dict(t_ns=det.header.t_measurement_ns, source_id=det.header.sender_id, ground_down_m=ground_down_m,
+                  person_velocity_ned_mps=person_velocity_ned_mps, config=config)
         try:
             out.append(measurement_from_box(b, intrinsics, T, cov, mode=mode, range_hint_m=range_hint_m, **kw))
         except DegenerateGeometryError:

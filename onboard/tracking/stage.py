@@ -179,7 +179,8 @@ class TrackingStage:
         if est is not None:
             hint = float(np.linalg.norm(est.position_ned_m - np.asarray(det.T_world_cam, dtype=float).reshape(4, 4)[:3, 3]))
         ms = measurements_from_detections(det, intr, range_hint_m=hint, ground_down_m=self.cfg.ground_down_m,
-                                          min_score=self.cfg.min_score, config=self.cfg.measurement)
+                                          min_score=self.cfg.min_score, config=self.cfg.measurement,
+                                          person_velocity_ned_mps=None if est is None else est.velocity_ned_m_s)
         if ms:
             self.filter.add_frame(ms)
         return len(ms)

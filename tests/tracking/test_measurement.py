@@ -6,6 +6,7 @@ import pytest
 
 from onboard.tracking.measurement import (
     DegenerateGeometryError,
+    MeasurementConfig,
     MeasurementError,
     box_from_person,
     measurement_from_box,
@@ -168,3 +169,28 @@ def test_ground_term_missing_falls_back_to_height_prior():
     m = measurement_from_box(box, CAM, T, POSE_COV, mode="height_and_ground", ground_down_m=-3.0)
     h = measurement_from_box(box, CAM, T, POSE_COV, mode="height_prior", ground_down_m=-3.0)
     assert m.mode == "height_prior" and np.allclose(m.position_ned_m, h.position_ned_m)
+
+
+def test_stride_lead_moves_the_centre_away_from_the_camera_by_the_walk_along_the_ray():
+    """The nearest foot (the box bottom) leads a person walking along the view ray: with the person's velocity
+    the centre moves away from the camera by stride_lead_s * |v . u| horizontally; walking across the ray, or
+    without a velocity, nothing moves (hand geometry: camera due south of the person, u = north)."""
+    cam = np.array([0.0, 0.0, -8.0])
+    person = np.array([8.0, 0.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T)
+    cfg = MeasurementConfig(stride_lead_s=0.14)
+    for mode in ("height_prior", "height_and_ground"):
+        base = measurement_from_box(box, CAM, T, POSE_COV, mode=mode, config=cfg).position_ned_m
+        for v, shift in (([1.2, 0.0, 0.0], 0.168), ([-1.2, 0.0, 0.0], 0.168), ([0.0, 1.5, 0.0], 0.0), ([0.6, 0.6, 0.3], 0.084)):
+            m = measurement_from_box(box, CAM, T, POSE_COV, mode=mode, config=cfg, person_velocity_ned_mps=np.array(v))
+            np.testing.assert_allclose(m.position_ned_m - base, [shift, 0.0, 0.0], atol=1e-9)
+        nan = measurement_from_box(box, CAM, T, POSE_COV, mode=mode, config=cfg, person_velocity_ned_mps=np.full(3, np.nan))
+        np.testing.assert_allclose(nan.position_ned_m, base, atol=1e-12)
+    # bearing mode carries no range: no correction; stride_lead_s = 0 turns it off
+    b0 = measurement_from_box(box, CAM, T, POSE_COV, mode="bearing", config=cfg).position_ned_m
+    b1 = measurement_from_box(box, CAM, T, POSE_COV, mode="bearing", config=cfg, person_velocity_ned_mps=np.array([1.2, 0, 0])).position_ned_m
+    np.testing.assert_allclose(b1, b0, atol=1e-12)
+    off = MeasurementConfig(stride_lead_s=0.0)
+    a = measurement_from_box(box, CAM, T, POSE_COV, mode="height_prior", config=off, person_velocity_ned_mps=np.array([1.2, 0, 0]))
+    np.testing.assert_allclose(a.position_ned_m, person, atol=1e-6)
