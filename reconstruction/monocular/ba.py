@@ -71,6 +71,11 @@ class BAConfig:
         """The paper's BA exactly: gamma from the first iteration, L by SVD."""
         return cls(**{"warmup_iters": 0, "L_update": "svd", **kw})
 
+    def paper_order(self) -> "BAConfig":
+        """This configuration with the paper's update order (no warm-up, L by SVD): what a discarded warm-up
+        falls back to, and the pipeline's paper-order ablation."""
+        return dataclasses.replace(self, warmup_iters=0, L_update="svd")
+
 
 @dataclasses.dataclass
 class BAResult:
@@ -348,6 +353,6 @@ def _warm_started(W_px, weights, S0, R0, limbs, cfg: BAConfig, R_prior) -> BARes
                             R_prior)  # fmt: skip
         res.objective = np.concatenate([warm.objective, res.objective])
     else:
-        res = bundle_adjust(W_px, weights, S0, R0, limbs, dataclasses.replace(base, L_update="svd"), R_prior)
+        res = bundle_adjust(W_px, weights, S0, R0, limbs, cfg.paper_order(), R_prior)
     res.warmup_accepted = bool(accept)
     return res

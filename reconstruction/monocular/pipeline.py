@@ -178,7 +178,7 @@ def reconstruct_monocular(
     if cfg.ablation_no_articulation:
         ba0 = bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, dataclasses.replace(cfg.ba, gamma=0.0))
     ba_paper = None
-    paper_cfg = dataclasses.replace(cfg.ba, warmup_iters=0, L_update="svd")
+    paper_cfg = cfg.ba.paper_order()
     if cfg.ablation_paper_order and paper_cfg != cfg.ba:
         # a discarded warm-up already ran the paper's BA from the init (identical result)
         same = ba.warmup_accepted is False or (ba.warmup_accepted is None and cfg.ba.L_update == "svd")
