@@ -23,8 +23,8 @@ window (plan start + ``settle_s`` to the land command): ``target_rmse_m`` / ``ta
 published fused estimate ``target`` against the true person root, 3D / horizontal, each estimate against the
 truth at its own time: the capture time of the newest detection fused), ``target_rmse_at_send_m`` (each
 estimate predicted with its velocity to the time it was sent, against the truth then: adds the detection
-latency's prediction error), ``target_rmse_fleet_frame_m`` (the same after removing the fleet's mean GPS bias,
-which no drone can observe without an absolute reference), ``person_in_roi_rate`` (own frames whose ROI, planned from the fused estimate before
+latency's prediction error), ``target_rmse_fleet_frame_m`` (the same after removing the fleet's mean GPS bias at
+each estimate's time, which no drone can observe without an absolute reference), ``person_in_roi_rate`` (own frames whose ROI, planned from the fused estimate before
 the frame's detection was fused, contains the person's exact image box, among frames where the person is in
 the image), ``mpc_solve_ms_median`` / ``mpc_solve_ms_p99`` / ``mpc_fallbacks`` (from ``<drone>.track.json``,
 written by the agent), ``detector_hz`` (own detection messages per second), ``self_pos_err_m_before`` /
@@ -449,15 +449,16 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
             before = float(np.sqrt(np.mean(np.sum((rep - true_p) ** 2, axis=1))))
             after = float(np.sqrt(np.mean(np.sum((rep - b - true_p) ** 2, axis=1))))
         # the same with the fleet's common GPS bias removed (truth-derived): without an absolute reference the
-        # drones can only agree on a frame shifted by the mean of their biases; this is the error within it
+        # drones can only agree on a frame shifted by the mean of their biases; this is the error within it. The
+        # biases drift (GPS wander, baro drift), so the mean is taken at each estimate's time, not over the window
         rmse_ff = math.nan
         if sel.sum():
             common = []
             for j, dj in enumerate(drone_ids):
                 Pj = per[dj]
-                sj = (Pj["t_state"] >= t0) & (Pj["t_state"] <= t1)
-                if sj.sum():
-                    common.append(np.mean(Pj["p_state"][sj] - _interp_rows(Pj["t_state"][sj], tt, vpos[:, j]), axis=0))
+                if len(Pj["t_state"]) >= 2:
+                    bias_j = Pj["p_state"] - _interp_rows(Pj["t_state"], tt, vpos[:, j])
+                    common.append(_interp_rows(P["t_est"][sel], Pj["t_state"], bias_j))
             if common:
                 e2 = err - np.mean(common, axis=0)
                 rmse_ff = float(np.sqrt(np.mean(np.sum(e2**2, axis=1))))

@@ -220,6 +220,8 @@ class Agent:
         self.rates["state"].tick()
         if self.tracking is not None and self.cfg.track.gps_jump_threshold_m > 0:
             self._check_gps_jump(st)
+        if self.tracking is not None and st.landed_state == "on_ground" and np.isfinite(st.position_ned_m[2]):
+            self.tracking.set_own_ground(st.position_ned_m[2])  # the take-off ground in the reported frame
         if self.recorder is not None:
             self._record(self.key(keys.STATE), encode(stamp_sent(st)), st.header.t_measurement_ns)
         t = time.monotonic()

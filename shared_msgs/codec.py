@@ -69,7 +69,8 @@ def decode(data: bytes | bytearray | memoryview, expected: type[T] | None = None
             f"unknown message type {probe.type!r}{where}; known: {', '.join(sorted(TYPE_BY_TAG))}. "
             f"Sender and receiver run different skycap versions: update both"
         )
-    if probe.header.schema_version != cls.SCHEMA_VERSION:
+    upgrade = probe.header.schema_version in cls.READABLE_VERSIONS
+    if probe.header.schema_version != cls.SCHEMA_VERSION and not upgrade:
         older = probe.header.schema_version < cls.SCHEMA_VERSION
         raise MessageError(
             f"{probe.type} schema version {probe.header.schema_version} sent by {probe.header.sender_id!r}{where}, "
@@ -87,6 +88,8 @@ def decode(data: bytes | bytearray | memoryview, expected: type[T] | None = None
         raise MessageError(f"invalid {probe.type} message{where} from {probe.header.sender_id!r}: {e}") from None
     _check_finite(msg, probe.type, where)
     _check_shapes(msg, probe.type, where, probe.header.sender_id)
+    if upgrade:  # an older version whose fields are a subset of today's: it is now a current message
+        msg.header.schema_version = cls.SCHEMA_VERSION
     return msg  # type: ignore[return-value]
 
 

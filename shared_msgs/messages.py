@@ -12,7 +12,8 @@ camera frame = OpenCV optical (x right, y down, z forward); pixel coordinates wi
 top-left pixel's corner; times in nanoseconds since the UNIX epoch (``*_ns``).
 
 Versioning: each message type has ``SCHEMA_VERSION``; a change of fields bumps it and the golden
-encodings in ``tests/msgs/golden/``. Decoders refuse other versions with a clear error.
+encodings in ``tests/msgs/golden/``. Decoders refuse other versions with a clear error, except the older ones a
+type lists in ``READABLE_VERSIONS`` (fields only added, with defaults), which decode as the current version.
 """
 
 from __future__ import annotations
@@ -64,6 +65,9 @@ class Message(msgspec.Struct, kw_only=True, tag_field="type"):
     """Base of all messages; subclasses set ``tag`` (the wire ``type``) and ``SCHEMA_VERSION``."""
 
     SCHEMA_VERSION: ClassVar[int] = 1
+    #: older schema versions this build still decodes, as the current version: those whose fields are a subset of
+    #: today's (fields added since then have defaults), so that recorded flights stay readable
+    READABLE_VERSIONS: ClassVar[tuple[int, ...]] = ()
     header: Header
 
     @classmethod
@@ -145,9 +149,12 @@ class BoundingBox(msgspec.Struct, kw_only=True):
 
 
 class Detections(Message, tag="detections"):
-    """Person detections in one frame with the camera pose (and covariance) at capture."""
+    """Person detections in one frame with the camera pose (and covariance) at capture.
 
-    SCHEMA_VERSION: ClassVar[int] = 1
+    Version 2 added ``ground_down_m`` (version 1 decodes with it None)."""
+
+    SCHEMA_VERSION: ClassVar[int] = 2
+    READABLE_VERSIONS: ClassVar[tuple[int, ...]] = (1,)
     camera_id: str
     frame_index: int
     detector: str  #: model name; "simulated" for the simulator's detector
@@ -158,6 +165,10 @@ class Detections(Message, tag="detections"):
     T_world_cam: tuple[float, ...]  #: 16 floats
     T_world_cam_cov: tuple[float, ...] = ()  #: 36 floats, 6x6 (position m, rotation rad) or empty
     roi_px: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  #: x, y, w, h searched (0s = whole)
+    #: the ground's down coordinate (m) in the sender's reported frame, the frame of ``T_world_cam``: its reported
+    #: down while it stood on the take-off ground, so that a constant height error of its estimate moves camera and
+    #: ground together; None = unknown (the receiver uses its configured ground)
+    ground_down_m: float | None = None
 
 
 class PersonKeypoints(msgspec.Struct, kw_only=True):

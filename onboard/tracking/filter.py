@@ -11,9 +11,11 @@ Measurement models:
   this drone, whose position is ``true + b_self``, so ``z = p + b_self + noise``: ``H = [I 0 I 0 ...]`` (exact
   for the height prior, whose point moves with the camera; with the feet-on-the-ground term a camera *height*
   error slides the point along the ray instead -- using that exact sensitivity made the vertical offsets
-  swing by metres during take-off, where the ray is near the horizon, so the identity is kept), noise
-  covariance :attr:`PositionMeasurement.cov_no_cam_position_m2` (the camera-position part is the state)
-  plus ``self_residual_position_var_m2`` (the white part of the GPS error).
+  swing by metres during take-off, where the ray is near the horizon, so the identity is kept; the slide is
+  measurement noise instead, and each drone gives the ground in its own reported frame, its take-off ground,
+  so that only the height drift since take-off slides the point), noise covariance
+  :attr:`PositionMeasurement.cov_no_cam_position_m2` (the camera-position part the offset explains is the
+  state) plus ``self_residual_position_var_m2`` (the white part of the GPS error).
 * **teammate j's detection**: ``z = p + b_j + noise``, the same model with ``b_j``'s block. (AirCap's filter
   kept only ``b_self`` and treated ``b_j`` as white noise (``fleet_offsets=False``: ``H = [I 0 0]``, covariance
   :attr:`PositionMeasurement.cov_m2`); but a GPS bias is slow, so averaging a teammate's detections over time

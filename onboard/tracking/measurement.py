@@ -15,8 +15,11 @@ A person detection is an image box with per-edge pixel variance, taken by a came
   stands straight (crouching, bending and sitting shrink the box by up to half, which the height prior reads
   as a person twice as far away). The bottom-centre ray meets the ground plane ``down = ground_down_m``
   (uncertain by ``ground_sigma_m``: uneven ground, jumps); the centre is half the prior height above it. The
-  two range estimates are fused with their information matrices (edges, height/ground spread only), fixed
-  at the nominal point, and the fused point is propagated like the others. Looking down steeply the ground
+  two range estimates are fused with their information matrices (edges, height/ground spread, and for the
+  ground the camera's height error over the plane, which slides the feet along the ray), fixed at the nominal
+  point, and the fused point is propagated like the others. The plane is given in the frame of the camera
+  pose: a drone's take-off ground in its own reported frame (``Detections.ground_down_m``), so that a constant
+  height error of its estimate moves camera and ground together. Looking down steeply the ground
   term dominates, looking near the horizon the height term does. When the ground ray misses (camera below
   the ground plane, ray above the horizon) it is the height prior alone.
 * **bearing only** (``mode="bearing"``): the ray through the box centre placed at ``range_hint_m`` (from the
@@ -36,8 +39,9 @@ differences of the closed-form model (11 inputs, 23 evaluations of a 3x3 least-s
 is elongated along the viewing ray (range from box height is much less certain than bearing).
 
 Two covariances are returned: ``cov_m2`` (everything) and ``cov_no_cam_position_m2`` (without the camera
-position part). The cooperative filter uses the latter for its *own* detections, where the camera position
-error (GPS offset) is a filter state, and the former for teammates' detections.
+position part that the filter's offset model ``z = p + b`` explains; the rest, the ground point's slide when the
+camera's height is off, stays). The cooperative filter uses the latter when the camera position error (GPS
+offset) is a filter state, the former otherwise.
 """
 
 from __future__ import annotations
@@ -230,8 +234,21 @@ def _stride_lead_correction(ray: np.ndarray, velocity_ned_mps: np.ndarray | None
 
 #: the inputs of a measurement model, in Jacobian column order: 4 box edges (px), person height (m), camera
 #: position (3, m), camera rotation (3, rad, world frame), ground height (m); and the central-difference steps
-_EDGES, _HEIGHT, _GROUND = [0, 1, 2, 3], 4, 11
+_EDGES, _HEIGHT, _CAM_POSITION, _GROUND = [0, 1, 2, 3], 4, [5, 6, 7], 11
 _STEPS = np.array([0.5] * 4 + [0.01] + [0.01] * 3 + [1e-4] * 3 + [0.01])
+
+
+def _unmodelled_camera_cov(J_cam: np.ndarray, pose_cov: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of the part of the camera-position error that the offset model does not explain.
+
+    The filter takes a measurement from a camera reported at ``c + b`` as ``p + b`` (its offset state carries
+    ``b``, so :attr:`PositionMeasurement.cov_no_cam_position_m2` leaves the camera position out). That is exact when
+    the point moves with the camera (height prior: ``J_cam = I``); a point on the ground plane moves with the
+    camera horizontally but slides along the ray when the camera's height over the plane is off (``J_cam``'s down
+    column is the slide, ``(d_n, d_e, 0) / -d_d`` per metre). The residual ``(J_cam - I) b`` is noise of such a
+    measurement. J_cam: (3, 3) d point / d camera position; pose_cov: (6, 6) with the position block first."""
+    M = J_cam - np.eye(3)
+    return M @ pose_cov[:3, :3] @ M.T
 
 
 def _jacobian(model, edges: np.ndarray, H: float, cols=range(12)) -> np.ndarray:
@@ -322,9 +339,12 @@ def measurement_from_box(
             return _ground_point(e, H, g, c0 + dc, R0, K_inv, ground_down_m)
 
         Jh = _jacobian(model_h, edges, H, _EDGES + [_HEIGHT])
-        Jg = _jacobian(model_g, edges, H, _EDGES + [_GROUND])
+        Jg = _jacobian(model_g, edges, H, _EDGES + [_GROUND] + _CAM_POSITION)
         C_h = Jh @ np.diag([*ev, config.person_height_sigma_m**2]) @ Jh.T
-        C_g = Jg @ np.diag([*ev, config.ground_sigma_m**2]) @ Jg.T
+        C_g = Jg[:, :5] @ np.diag([*ev, config.ground_sigma_m**2]) @ Jg[:, :5].T
+        # a camera position error that the filter's offset (z = p + b) does not explain: the ground point slides
+        # along the ray when the camera's height over the ground plane is off (see _unmodelled_camera_cov)
+        C_g = C_g + _unmodelled_camera_cov(Jg[:, 5:8], pose_cov)
         # the ground point's vertical is the height prior's (centre = feet + H/2): give it the height spread too
         C_g = C_g + np.diag([0.0, 0.0, (0.5 * config.person_height_sigma_m) ** 2])
         reg = 1e-6 * np.eye(3)
@@ -382,7 +402,7 @@ def measurement_from_box(
     Sigma_nc = Sigma_in.copy()
     Sigma_nc[5:8, :] = 0.0
     Sigma_nc[:, 5:8] = 0.0
-    cov_nc = J @ Sigma_nc @ J.T
+    cov_nc = J @ Sigma_nc @ J.T + _unmodelled_camera_cov(J[:, 5:8], pose_cov)
     if mode == "bearing":
         r = (p - c0) / np.linalg.norm(p - c0)
         along = config.bearing_range_sigma_m**2 * np.outer(r, r)
@@ -417,8 +437,13 @@ def measurements_from_detections(
 ) -> list[PositionMeasurement]:
     """Every usable "person" box of a :class:`Detections` message -> measurements (bad boxes are skipped
     and logged; a degenerate height-prior geometry falls back to bearing mode when allowed). ``mode`` None =
-    ``config.mode``."""
+    ``config.mode``. The ground plane is the message's own ``ground_down_m`` (the sender's take-off ground in
+    the frame of its camera pose) when it carries one, else ``ground_down_m``."""
     mode = config.mode if mode is None else mode
+    if det.ground_down_m is not None:
+        if not math.isfinite(det.ground_down_m):
+            raise MeasurementError(f"Detections.ground_down_m must be finite or None, got {det.ground_down_m!r}")
+        ground_down_m = float(det.ground_down_m)
     if len(det.T_world_cam) != 16:
         raise MeasurementError(f"Detections.T_world_cam must have 16 floats, got {len(det.T_world_cam)}")
     T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4)

@@ -50,6 +50,8 @@ class TrackingStageConfig:
     #: (GNSS grade: ~1 m GPS, ~0.05 m RTK; attitude ~1 deg)
     camera_position_sigma_m: float = 1.0
     camera_rotation_sigma_rad: float = 0.017
+    #: the ground's down (m) for detections that carry none (a sender that never stood on the ground since its
+    #: agent started); each drone stamps its own with its take-off ground (:meth:`TrackingStage.set_own_ground`)
     ground_down_m: float = 0.0
 
 
@@ -71,7 +73,7 @@ def box_problem(b) -> str | None:
 def detection_problem(det: Detections, rigid_tol: float = 1e-3) -> str | None:
     """Why a whole :class:`Detections` message is malformed (None when it is usable): image size, camera
     pose (16 finite floats of a rigid transform: orthonormal rotation with determinant +1, last row 0 0 0 1),
-    pose covariance (empty or 36 finite floats with non-negative diagonal)."""
+    pose covariance (empty or 36 finite floats with non-negative diagonal), ground (None or finite)."""
     if not (det.width_px > 0 and det.height_px > 0):
         return f"image size {det.width_px}x{det.height_px}"
     if len(det.T_world_cam) != 16:
@@ -89,6 +91,8 @@ def detection_problem(det: Detections, rigid_tol: float = 1e-3) -> str | None:
         C = np.asarray(det.T_world_cam_cov, dtype=float).reshape(6, 6)
         if not np.all(np.isfinite(C)) or np.diag(C).min() < 0:
             return "T_world_cam_cov is not a covariance"
+    if det.ground_down_m is not None and not np.isfinite(det.ground_down_m):
+        return f"non-finite ground_down_m {det.ground_down_m!r}"
     return None
 
 
@@ -108,6 +112,18 @@ class TrackingStage:
         #: a detected jump of the own position estimate: (step (3,) m, t_ns of the jump, relax time s)
         self._step: tuple[np.ndarray, int, float] | None = None
         self._seq = 0
+        #: this drone's reported down while it last stood on the ground (None until then)
+        self.own_ground_down_m: float | None = None
+
+    def set_own_ground(self, down_m: float) -> None:
+        """This drone's reported down while it stands on the (flat) take-off ground; the agent calls it with every
+        state sample on the ground. Stamped on the own detections as ``ground_down_m``: the ground plane is then
+        given in the same reported frame as their camera pose, so a constant height error of this drone's
+        estimate moves camera and ground together and the measurement is the person plus this drone's offset
+        (the filter's model), instead of sliding along the ray by the height error over the ray's slope."""
+        if not np.isfinite(down_m):
+            raise ValueError(f"set_own_ground: the reported down must be finite, got {down_m!r}")
+        self.own_ground_down_m = float(down_m)
 
     def set_camera_info(self, info: CameraInfo) -> None:
         self.intrinsics = CameraIntrinsics.from_camera_info(info)
@@ -137,12 +153,15 @@ class TrackingStage:
         return step * float(np.exp(-(t_ns - t0) * 1e-9 / tau))
 
     def _own_pose(self, det: Detections) -> Detections:
-        """The message with its pose covariance (the configured grade when the detector left it empty) and its
-        camera position taken back by a detected position step."""
+        """The message with its pose covariance (the configured grade when the detector left it empty), its
+        ground (the take-off ground when the detector left it empty) and its camera position taken back by a
+        detected position step."""
         c = self.cfg
         if len(det.T_world_cam_cov) != 36:
             cov = np.diag([c.camera_position_sigma_m**2] * 3 + [c.camera_rotation_sigma_rad**2] * 3)
             det = msgspec.structs.replace(det, T_world_cam_cov=tuple(float(v) for v in cov.reshape(-1)))
+        if det.ground_down_m is None and self.own_ground_down_m is not None:
+            det = msgspec.structs.replace(det, ground_down_m=self.own_ground_down_m)
         corr = self.position_correction(det.header.t_measurement_ns)
         if np.any(corr != 0.0):
             T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4).copy()

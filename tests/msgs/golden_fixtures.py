@@ -82,6 +82,7 @@ def examples() -> dict[str, Message]:
             header=hdr(Detections, "drone_1", 120), camera_id="cam0", frame_index=119, detector="yolo-person-s",
             mode="roi", boxes=[BOX], width_px=1280, height_px=720, T_world_cam=T_WORLD_CAM,
             T_world_cam_cov=tuple(0.01 if i % 7 == 0 else 0.0 for i in range(36)), roi_px=(64.0, 0.0, 320.0, 320.0),
+            ground_down_m=0.375,
         ),
         Keypoints2D(
             header=hdr(Keypoints2D, "sim", 120), camera_id="cam0", frame_index=119, detector="simulated",

@@ -47,3 +47,21 @@ def test_golden_bytes_decode_to_the_example(tag: str) -> None:
     assert raw["type"] == tag
     assert raw["header"]["schema_version"] == type(EXAMPLES[tag]).SCHEMA_VERSION
     assert set(raw) == {"type", *type(EXAMPLES[tag]).__struct_fields__}
+
+
+def test_older_readable_versions_decode_as_the_current_version() -> None:
+    """Recorded flights stay readable: Detections version 1 (before ``ground_down_m``) decodes as version 2 with
+    the new field at its default; a version a type does not list is still refused, naming both versions."""
+    from shared_msgs import Detections
+    from shared_msgs.codec import MessageError
+
+    old = (GOLDEN_DIR / "older" / "detections.v1.msgpack").read_bytes()
+    assert msgspec.msgpack.decode(old)["header"]["schema_version"] == 1
+    msg = decode(old, Detections)
+    assert msg.header.schema_version == Detections.SCHEMA_VERSION == 2 and msg.ground_down_m is None
+    current = EXAMPLES["detections"]
+    assert msgspec.structs.replace(msg, header=current.header, ground_down_m=current.ground_down_m) == current
+    raw = msgspec.msgpack.decode(old)
+    raw["header"]["schema_version"] = 0
+    with pytest.raises(MessageError, match="schema version 0"):
+        decode(msgspec.msgpack.encode(raw), Detections)

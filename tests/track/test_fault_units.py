@@ -39,6 +39,8 @@ def test_box_and_message_problems_are_named():
     assert "16" in detection_problem(msgspec.structs.replace(det, T_world_cam=(1.0,) * 9))
     assert "image size" in detection_problem(msgspec.structs.replace(det, width_px=0))
     assert "covariance" in detection_problem(msgspec.structs.replace(det, T_world_cam_cov=(-1.0,) * 36))
+    assert "ground_down_m" in detection_problem(msgspec.structs.replace(det, ground_down_m=float("inf")))
+    assert detection_problem(msgspec.structs.replace(det, ground_down_m=-0.4)) is None
 
 
 def test_stage_ignores_and_counts_malformed_detections_and_keeps_tracking():

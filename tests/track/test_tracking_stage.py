@@ -95,3 +95,37 @@ def test_stage_plans_before_a_real_detector_and_keeps_the_searched_region():
     searched = (plan.roi_px[0] - 3.0, plan.roi_px[1] - 3.0, plan.roi_px[2] + 6.0, plan.roi_px[3] + 6.0)  # clipped/rounded by the detector
     shared = stage.on_own_detections(msgspec.structs.replace(det, roi_px=searched, mode="roi", detector="nanodet"), plan)
     assert shared.roi_px == searched and stage.last_plan is plan
+
+
+def _own_offset_after_flight(stamp_ground: bool, offset: np.ndarray) -> np.ndarray:
+    """drone_0 (GPS grade, reported = true + offset) among RTK teammates: its filter's own-offset estimate after
+    40 s; with stamp_ground its detections carry its take-off ground in its reported frame (set_own_ground)."""
+    rng = np.random.default_rng(11)
+    stage = TrackingStage("drone_0")
+    stage.set_camera_info(camera_info())
+    if stamp_ground:
+        stage.set_own_ground(0.0 + offset[2])  # reported down while standing on the ground (true down 0)
+    rate, dur = 5.0, 40.0
+    for i in range(int(dur * rate)):
+        for k in range(3):
+            t = i / rate + k / (3 * rate)
+            det, _ = detections_message(k, t, i, rng, offset if k == 0 else np.zeros(3),
+                                        pos_var_m2=1.0 if k == 0 else 0.05**2)
+            if k == 0:
+                shared = stage.on_own_detections(det)
+                assert shared.ground_down_m == (offset[2] if stamp_ground else None)
+            else:
+                stage.on_teammate_detections(det)
+    return stage.estimate(int(dur * 1e9)).offset_ned_m
+
+
+def test_own_take_off_ground_keeps_a_height_error_out_of_the_horizontal_offset():
+    """A drone whose estimate is 1 m too high (and right horizontally): over the true ground its feet rays land
+    too far out, and its horizontal offset takes the radial error; with its own take-off ground stamped on its
+    detections the measurement is person + offset and the horizontal offset stays near zero."""
+    offset = np.array([0.0, 0.0, -1.0])
+    stamped = _own_offset_after_flight(True, offset)
+    legacy = _own_offset_after_flight(False, offset)
+    assert np.linalg.norm(stamped[:2]) < 0.12, stamped
+    assert np.linalg.norm(legacy[:2]) > np.linalg.norm(stamped[:2]) + 0.15, legacy
+    assert np.linalg.norm(stamped - offset) < 0.15, stamped

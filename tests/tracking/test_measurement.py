@@ -194,3 +194,64 @@ def test_stride_lead_moves_the_centre_away_from_the_camera_by_the_walk_along_the
     off = MeasurementConfig(stride_lead_s=0.0)
     a = measurement_from_box(box, CAM, T, POSE_COV, mode="height_prior", config=off, person_velocity_ned_mps=np.array([1.2, 0, 0]))
     np.testing.assert_allclose(a.position_ned_m, person, atol=1e-6)
+
+
+def test_sender_ground_in_its_own_frame_makes_the_measurement_person_plus_offset():
+    """A sender whose estimate is off by b (0.44 m too high, and 0.3 m north) reports its camera at c + b. With
+    the ground in the true frame (down 0), the feet ray of the shifted camera meets it ~0.44 / tan(depression) too
+    far along the ray; with the message's ground_down_m = its reported down on the take-off ground (0 + b_down),
+    camera and ground move together and the measurement is exactly person + b (the filter's z = p + b_j)."""
+    b = np.array([0.3, 0.0, -0.44])
+    cam = np.array([0.0, 0.0, -8.0])
+    person = np.array([8.0, 0.0, -PERSON_HALF_H])
+    T_true = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T_true)
+    T_reported = T_true.copy()
+    T_reported[:3, 3] += b
+
+    def det(ground):
+        return Detections(
+            header=Detections.make_header("drone_3", 7), camera_id="cam0", frame_index=1, detector="simulated",
+            mode="full", width_px=1920, height_px=1080, T_world_cam=tuple(T_reported.reshape(-1)),
+            T_world_cam_cov=tuple(np.diag([0.1**2] * 3 + [1e-6] * 3).reshape(-1)),
+            boxes=[BoundingBox(x_min_px=box[0], y_min_px=box[1], x_max_px=box[2], y_max_px=box[3], score=0.9)],
+            ground_down_m=ground)
+
+    own = measurements_from_detections(det(0.0 + b[2]), CAM, mode="height_and_ground", ground_down_m=123.0)[0]
+    np.testing.assert_allclose(own.position_ned_m, person + b, atol=1e-6)
+    # no ground in the message: the receiver's configured ground (the true one here) -> slides along the ray
+    legacy = measurements_from_detections(det(None), CAM, mode="height_and_ground", ground_down_m=0.0)[0]
+    along = legacy.position_ned_m[0] - (person + b)[0]
+    assert along > 0.3, f"a camera 0.44 m too high over the true ground puts the person {along:.2f} m too far"
+    with pytest.raises(MeasurementError, match="ground_down_m"):
+        measurements_from_detections(det(float("nan")), CAM)
+
+
+def test_camera_height_error_the_offset_cannot_explain_stays_in_the_measurement_noise():
+    """cov_no_cam_position_m2 leaves the camera position to the filter's offset (z = p + b): exact for the height
+    prior, whose point moves with the camera, so its covariance does not depend on the camera position variance.
+    The ground point slides along the ray when the camera's height is off (hand check: 1 m of camera
+    height slides the feet 8 / 8.845 m): that part stays, and the fused mode leans on the height prior when it is large."""
+    cam = np.array([0.0, 0.0, -8.0 - PERSON_HALF_H])
+    person = np.array([8.0, 0.0, -PERSON_HALF_H])
+    T = look_at_pose(cam, person)
+    box, _ = box_from_person(person, CAM, T)
+
+    def cov(var_m2, mode):
+        C = np.diag([var_m2] * 3 + [1e-6] * 3)
+        return measurement_from_box(box, CAM, T, C, mode=mode, edge_var_px2=np.full(4, 4.0))
+
+    hp_small, hp_big = cov(0.05**2, "height_prior"), cov(1.0, "height_prior")
+    np.testing.assert_allclose(hp_small.cov_no_cam_position_m2, hp_big.cov_no_cam_position_m2, atol=1e-9)
+    bearing = measurement_from_box(box, CAM, T, np.diag([1.0] * 3 + [1e-6] * 3), mode="bearing",
+                                   config=MeasurementConfig(bearing_range_sigma_m=0.0))
+    # bearing mode puts the feet on the ground plane: camera 8.845 m over the ground, feet 8 m ahead, so the feet
+    # slide 8 / 8.845 m north per metre of camera height
+    slide = bearing.cov_no_cam_position_m2[0, 0] - measurement_from_box(
+        box, CAM, T, np.diag([0.0] * 3 + [1e-6] * 3), mode="bearing", config=MeasurementConfig(bearing_range_sigma_m=0.0)
+    ).cov_no_cam_position_m2[0, 0]
+    assert abs(slide - (8.0 / 8.845) ** 2) < 0.02, slide
+    f_small, f_big = cov(0.05**2, "height_and_ground"), cov(1.0, "height_and_ground")
+    assert f_big.cov_no_cam_position_m2[0, 0] > f_small.cov_no_cam_position_m2[0, 0] + 0.02
+    # and the fused point is still the person (both terms agree on exact boxes)
+    np.testing.assert_allclose(f_big.position_ned_m, person, atol=0.02)
