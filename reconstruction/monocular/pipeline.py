@@ -19,8 +19,8 @@
    the keypoints with the drone's camera poses, started from the perspective BA: the multi-view product fit
    (:func:`reconstruction.multiview.fit.fit_capture`) with one camera -- the skeleton body model with one shape
    for the clip, the learned pose prior and joint limits, temporal smoothness, a robust 2D term with left/right
-   swap handling -- which settles the depth ambiguities that the dictionary's sparse code leaves
-   (:func:`model_fit`; result ``MonocularResult.model``).
+   swap handling -- which settles the depth ambiguities that the dictionary's sparse code leaves; Adam, then
+   L-BFGS to convergence (:func:`model_fit`; result ``MonocularResult.model``).
 
 Poses come back in the orthographic camera's pixel units; :func:`to_world_metric` places them in the
 world (NED, metres) using the camera poses and an assumed body size.
@@ -72,8 +72,9 @@ class ExtensionConfig:
 
 def _model_fit_defaults() -> FitConfig:
     # one view: the pose prior must settle what the image cannot (limb depth), so it weighs more than with
-    # several views (0.1); the camera stays the drone's smoothed track (one view cannot correct it)
-    return FitConfig(w_pose_prior=0.5, iters=400, refine_cameras=False)
+    # several views (0.1); the camera stays the drone's smoothed track (one view cannot correct it). 400 Adam steps
+    # find the basin, 1000 L-BFGS iterations converge in it (Adam alone stops far from the minimum)
+    return FitConfig(w_pose_prior=0.5, iters=400, refine_cameras=False, polish_iters=1000)
 
 
 @dataclasses.dataclass

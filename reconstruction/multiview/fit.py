@@ -37,7 +37,8 @@ frame. Energy (negative log-likelihoods, summed, divided by the number of output
   averages over the whole clip instead of over a knot interval;
 
 initialised by robust triangulation (IRLS Geman-McClure over views), a shape measured on it, and
-inverse kinematics; Adam (one-cycle learning rate) for ``iters`` steps, batched over the whole sequence on ``device``.
+inverse kinematics; Adam (one-cycle learning rate) for ``iters`` steps, batched over the whole sequence on ``device``,
+then optionally L-BFGS (``polish_iters``, :func:`lbfgs_polish`) at the final robust scale.
 """
 
 from __future__ import annotations
@@ -112,6 +113,9 @@ class FitConfig:
     gyro_bias_sigma_degps: float = 0.1
     swap_robust: bool = True
     refine_cameras: bool = True
+    #: L-BFGS iterations (strong-Wolfe line search) after the Adam steps, at the final robust scale: Adam gets into
+    #: the basin, L-BFGS converges in it (0 = Adam only; the monocular body fit uses 1000, see its config)
+    polish_iters: int = 0
 
 
 @dataclasses.dataclass
@@ -128,6 +132,9 @@ class FitResult:
     T_world_cam_drone: np.ndarray  # (N, 4, 4)
     fit_seconds: float
     method: str
+    #: the product fit's objective at its end (per output time, at the final robust scale); comparable between
+    #: fits of one capture with one configuration (e.g. from different starts); NaN for the paper path
+    energy: float = float("nan")
 
     def params(self) -> dict:
         return {"root_orient": self.root_orient, "pose": self.pose, "transl": self.transl, "shape": self.shape}
@@ -352,7 +359,10 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
         sched.step()
         if progress and i % 25 == 0:
             bar.set_postfix(E=f"{E.item():.2f}")
+    if cfg.polish_iters > 0:
+        lbfgs_polish(lambda: energy(cfg.sigma_px_end), [q for g in groups for q in g["params"]], cfg.polish_iters, progress)
     with torch.no_grad():
+        E_final = float(energy(cfg.sigma_px_end))
         X = model(ro.double(), pose.double(), tr.double(), shape.double())  # float64: exports match exactly
         R, p, _, _ = cam_poses()
     T_ref = np.tile(np.eye(4), (N, 1, 1))
@@ -363,7 +373,46 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
         pose=pose.detach().double().cpu().numpy(), transl=tr.detach().double().cpu().numpy(),
         shape=shape.detach().double().cpu().numpy(), cam_index=obs.cam, cam_t_ns=obs.t_ns,
         T_world_cam_refined=T_ref, T_world_cam_drone=obs.T_est, fit_seconds=time.perf_counter() - t_start, method="product",
+        energy=E_final,
     )  # fmt: skip
+
+
+def lbfgs_polish(energy_fn, params: list[torch.Tensor], iters: int, progress: bool = False, chunk: int = 50) -> float:
+    """Minimise ``energy_fn()`` (a scalar tensor of ``params``) with L-BFGS from the parameters' current values.
+
+    ``iters`` iterations in chunks of ``chunk`` (one progress step each; the history carries over). Stops early when
+    a chunk no longer lowers the energy; a chunk that makes it non-finite or higher is undone. Returns the final
+    energy. Used after Adam, which finds the basin but converges slowly in it."""
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=chunk, history_size=20, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-9, tolerance_change=1e-12)
+
+    def closure():
+        opt.zero_grad(set_to_none=True)
+        E = energy_fn()
+        E.backward()
+        return E
+
+    with torch.no_grad():
+        E_prev = float(energy_fn())
+    n_chunks = -(-int(iters) // chunk)
+    bar = tqdm(range(n_chunks), desc="fit (L-BFGS)", disable=not progress, leave=False)
+    for _ in bar:
+        saved = [q.detach().clone() for q in params]
+        opt.step(closure)
+        with torch.no_grad():
+            E = float(energy_fn())
+        if not np.isfinite(E) or E > E_prev:
+            with torch.no_grad():
+                for q, q0 in zip(params, saved):
+                    q.copy_(q0)
+            break
+        done = E > E_prev - 1e-6 * abs(E_prev)
+        E_prev = E
+        if progress:
+            bar.set_postfix(E=f"{E:.3f}")
+        if done:
+            break
+    return E_prev
 
 
 def _knots(samp: dict, obs, spacing_s: float) -> dict:
