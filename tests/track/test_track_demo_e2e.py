@@ -46,6 +46,11 @@ def test_short_track_demo_follows_the_person(tmp_path):
     assert f["min_separation_m"] > f["configured_min_separation_m"], f
     assert f["tracking_lost_s"] < 5.0, f
     assert "tgt_rmse_m" in r.stdout  # the printed tracking table
+    # the shared detections carry the sender's take-off ground in its reported frame (true ground 0 + its height bias)
+    from onboard.flightlog import FlightLog
+
+    grounds = [m.msg.ground_down_m for m in FlightLog(out / "drone_1.mcap").messages(["detections"])]
+    assert len(grounds) > 30 and all(g is not None and abs(g) < 2.5 for g in grounds), grounds[:5]
 
 
 def test_short_track_demo_with_the_real_detector(tmp_path):
