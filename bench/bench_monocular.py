@@ -92,10 +92,10 @@ def main() -> int:
     tm = []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
-        model_fit(W, res.weights, T_wc, view.K, view.t_ns[: args.frames], rp.X, cfg.model)
+        model_fit(W, res.confidence, T_wc, view.K, view.t_ns[: args.frames], rp.X, cfg.model)  # as the pipeline
         tm.append(time.perf_counter() - t0)
     # iters: Adam steps + L-BFGS iterations at most (the polish stops when it no longer lowers the energy)
-    rows.append(("body model fit (Adam + L-BFGS, torch)", min(tm), cfg.model.fit.iters + cfg.model.fit.polish_iters))
+    rows.append(("body model (Adam+L-BFGS, torch)", min(tm), cfg.model.fit.iters + cfg.model.fit.polish_iters))
     print("machine:", describe_machine(f"numpy {np.__version__}", "BLAS threads 1", f"torch {torch.__version__} threads 1"))
     print(f"clip: {src}, {T} frames, 17 joints, dictionary K={d.num_bases}; best of {args.repeat}")
     print(f"load average (1, 5, 15 min) at the end: {os.getloadavg()}")

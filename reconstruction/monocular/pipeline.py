@@ -116,6 +116,8 @@ class MonocularResult:
     ba_paper: BAResult | None = None  # the paper's BA exactly (BAConfig.paper); None unless the default differs
     model: FitResult | None = None  # the body model fitted after the perspective BA (world joints and parameters)
     model_seconds: float = 0.0
+    #: (T, 17) the confidence after track cleaning (what the body model fits; ``weights`` also has the init's inliers)
+    confidence: np.ndarray | None = None
 
 
 def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
@@ -228,7 +230,7 @@ def reconstruct_monocular(
     return MonocularResult(
         init=init, ba=ba, ba_no_articulation=ba0, ba_extended=ext, weights=w, init_seconds=init_s, ba_seconds=ba_s,
         ba_extended_frame=frame, ba_perspective=persp, perspective_seconds=persp_s, ba_paper=ba_paper,
-        model=model, model_seconds=model_s,
+        model=model, model_seconds=model_s, confidence=conf,
     )  # fmt: skip
 
 

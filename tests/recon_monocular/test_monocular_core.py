@@ -405,5 +405,8 @@ def test_pipeline_runs_paper_order_ablation(dictionary):
     assert res.ba.warmup_accepted is True and res.ba_paper is not None and res.ba_paper is not res.ba
     ref = bundle_adjust(W, res.weights, res.init.S, res.init.R, dictionary.limbs, BAConfig.paper())
     np.testing.assert_array_equal(res.ba_paper.S, ref.S)
+    # the cleaned confidence (what the body model fits): the BA's weights are it times the init's inliers
+    assert res.confidence.shape == res.weights.shape
+    np.testing.assert_array_equal(res.weights, res.confidence * res.init.inlier)
     cfg.ba = BAConfig.paper()  # the paper's own config: no duplicate run
     assert reconstruct_monocular(W, None, dictionary, cfg).ba_paper is None
