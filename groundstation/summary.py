@@ -414,6 +414,10 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
     t1 = min(t_land, tt[-1])
     if t1 - t0 < 2.0:
         raise SummaryError(f"no steady tracking window in {flight_dir}: fly longer (--duration)")
+    # each drone's position estimate error (reported - true) at its state samples: the own-position figures and
+    # the fleet's common bias
+    bias = {d: per[d]["p_state"] - _interp_rows(per[d]["t_state"], tt, vpos[:, j])
+            for j, d in enumerate(drone_ids) if len(per[d]["t_state"])}
     out = {}
     for k, d in enumerate(drone_ids):
         P = per[d]
@@ -440,25 +444,19 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
         ssel = (P["t_state"] >= t0) & (P["t_state"] <= t1)
         off = np.asarray(P["stats"].get("offset_log", []), dtype=float).reshape(-1, 4)
         if ssel.sum() and len(off) >= 2:
-            ts = P["t_state"][ssel]
-            true_p = _interp_rows(ts, tt, vpos[:, k])
-            rep = P["p_state"][ssel]
+            e_own = bias[d][ssel]
             o_t = off[:, 0] * 1e-9
             oo = np.argsort(o_t)
-            b = _interp_rows(ts, o_t[oo], off[oo, 1:])
-            before = float(np.sqrt(np.mean(np.sum((rep - true_p) ** 2, axis=1))))
-            after = float(np.sqrt(np.mean(np.sum((rep - b - true_p) ** 2, axis=1))))
+            b = _interp_rows(P["t_state"][ssel], o_t[oo], off[oo, 1:])
+            before = float(np.sqrt(np.mean(np.sum(e_own**2, axis=1))))
+            after = float(np.sqrt(np.mean(np.sum((e_own - b) ** 2, axis=1))))
         # the same with the fleet's common GPS bias removed (truth-derived): without an absolute reference the
         # drones can only agree on a frame shifted by the mean of their biases; this is the error within it. The
         # biases drift (GPS wander, baro drift), so the mean is taken at each estimate's time, not over the window
         rmse_ff = math.nan
         if sel.sum():
-            common = []
-            for j, dj in enumerate(drone_ids):
-                Pj = per[dj]
-                if len(Pj["t_state"]) >= 2:
-                    bias_j = Pj["p_state"] - _interp_rows(Pj["t_state"], tt, vpos[:, j])
-                    common.append(_interp_rows(P["t_est"][sel], Pj["t_state"], bias_j))
+            common = [_interp_rows(P["t_est"][sel], per[dj]["t_state"], bias[dj]) for dj in drone_ids
+                      if len(per[dj]["t_state"]) >= 2]
             if common:
                 e2 = err - np.mean(common, axis=0)
                 rmse_ff = float(np.sqrt(np.mean(np.sum(e2**2, axis=1))))
