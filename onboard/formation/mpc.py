@@ -25,7 +25,9 @@ the shifted previous plan) or qpOASES / IPOPT for comparison (``bench/bench_trac
 
 A constraint that the current state already violates (e.g. drones started too close) is relaxed at each
 step by what the drone can recover by then at full acceleration, so the plan moves back to the safe side
-as fast as the limits allow instead of being infeasible. If the solver fails (infeasible: e.g. too fast to
+as fast as the limits allow instead of being infeasible; likewise a drone already faster than the speed
+limits (a vehicle overshoots its setpoint: e.g. still climbing at take-off speed) may slow down at full
+deceleration instead of meeting them at the first step. If the solver fails (infeasible: e.g. too fast to
 stop before the geofence) or answers later than ``max_solve_time_s``, the controller falls back to "brake
 and hold" (full deceleration, then hover) and counts it (:attr:`FormationMPC.fallback_count`).
 """
@@ -334,6 +336,45 @@ class FormationMPC:
         self._ubg0 = np.tile(ubg_step, N)
 
     # ------------------------------------------------------------------ helpers
+    def _relax_speed_limits(self, v0: np.ndarray, t_steps_s: np.ndarray, lbw, ubw, lbg, ubg) -> None:
+        """Widen the speed limits (in place) for a drone that is already faster than them.
+
+        A real vehicle overshoots its velocity setpoint (e.g. still climbing at take-off speed when the
+        formation starts, or a gust): a hard |v_k| <= v_max from the first step on is then infeasible, and
+        the controller would brake and hold. Instead, at step k the limit is what braking at full
+        acceleration reaches by then. Vertical: max(v_max, |v_down,0| - a_max t_k). Horizontal (every row
+        d of the speed polygon): max(v_pol, |d . v0| (1 - a_pol t_k / |v0_h|)), the speed of a braking
+        straight against v0_h at a_pol, which satisfies every row of the acceleration polygon. A drone
+        within the limits gets the plain limits."""
+        c, N = self.cfg, self.N
+        brake = 0.98  # plan slightly softer than the limit: the relaxed bound is never the binding one
+        vz = float(v0[2])
+        if abs(vz) > c.max_speed_down_m_s:
+            lim = np.maximum(c.max_speed_down_m_s, abs(vz) - brake * c.max_accel_down_m_s2 * t_steps_s)
+            for k in range(N):
+                i = k * 9 + 8  # v_down of x_{k+1}
+                if vz > 0:
+                    ubw[i] = lim[k]
+                else:
+                    lbw[i] = -lim[k]
+        sides = c.polygon_sides // 2
+        vpol = c.max_speed_h_m_s * math.cos(math.pi / c.polygon_sides)
+        apol = c.max_accel_h_m_s2 * math.cos(math.pi / c.polygon_sides)
+        vh = float(np.hypot(v0[0], v0[1]))
+        if vh <= 1e-9:
+            return
+        dirs = np.array([(math.cos(math.pi * s / sides), math.sin(math.pi * s / sides)) for s in range(sides)])
+        proj = np.abs(dirs @ v0[:2])  # (sides,)
+        if not np.any(proj > vpol):
+            return
+        shrink = np.maximum(0.0, 1.0 - brake * apol * t_steps_s / vh)  # (N,)
+        rps = self._rows_per_step
+        for k in range(N):
+            lim = np.maximum(vpol, proj * shrink[k])
+            rows = k * rps + 6 + 2 * np.arange(sides)
+            lbg[rows] = -lim
+            ubg[rows] = lim
+
     def _idx_pos(self, k: int) -> slice:
         """w indices of p_{k+1} (k = 0 .. N-1)."""
         base = k * 9 + 3
@@ -492,6 +533,7 @@ class FormationMPC:
         lbg, ubg = self._lbg0.copy(), self._ubg0.copy()
         rps = self._rows_per_step
         M = self._M
+        self._relax_speed_limits(v0, t_steps_s, lbw, ubw, lbg, ubg)
         for k in range(N):
             lbg[k * rps + rps - L - M : k * rps + rps - M] = hh_eff[:, k]
             if M:

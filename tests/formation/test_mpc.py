@@ -195,3 +195,33 @@ def test_altitude_band_and_vertical_speed():
     for k in range(40):
         r = m2.step(k * int(1e8), np.array([8.0, 0.0, -8.95]), np.zeros(3), PERSON, np.zeros(3), 0.0)
         assert np.all(-r.plan.positions_ned_m[1:, 2] <= 9.0 + 1e-3)
+
+
+def test_drone_faster_than_the_limits_slows_down_instead_of_falling_back():
+    """A vehicle overshoots its setpoints: here it still climbs at take-off speed (1.45 m/s against the MPC's
+    1 m/s) and flies 5.8 m/s horizontally (limit 5). A hard limit from the first step would be infeasible
+    (brake and hold); the plan must brake at no more than the acceleration limits and be within the speed
+    limits once braking at full acceleration gets there."""
+    cfg = MpcConfig(max_speed_down_m_s=1.0, max_accel_down_m_s2=2.0, max_speed_h_m_s=5.0, max_accel_h_m_s2=4.0,
+                    max_solve_time_s=1.0)
+    for v0 in ([0.0, 0.0, -1.45], [0.0, 0.0, 1.45], [5.8, 0.0, 0.0], [-3.0, 4.9, -1.3]):
+        m = FormationMPC("d0", cfg)
+        v0 = np.array(v0)
+        r = m.step(0, np.array([8.0, 0.0, -6.0]), v0, PERSON, np.zeros(3), 0.0)
+        assert r.ok and not r.fallback and m.fallback_count == 0, (v0, r.status)
+        V = r.plan_velocities_ned_m_s
+        dv = np.diff(V, axis=0) / cfg.dt_s
+        assert np.all(np.abs(dv[:, 2]) <= 2.0 + 1e-3)
+        assert np.all(np.linalg.norm(dv[:, :2], axis=1) <= 4.0 + 1e-3)
+        # vertical: within 1 m/s from the step where full deceleration gets there
+        t = np.arange(1, cfg.horizon_steps + 1) * cfg.dt_s
+        settled_v = abs(v0[2]) - 2.0 * t <= 1.0 - 0.05
+        assert np.all(np.abs(V[1:, 2])[settled_v] <= 1.0 + 1e-3)
+        assert np.all(np.abs(V[1:, 2]) <= np.maximum(1.0, abs(v0[2]) - 0.98 * 2.0 * t) + 1e-3)
+        # horizontal: the speed never grows and ends within the limit
+        vh = np.linalg.norm(V[:, :2], axis=1)
+        assert vh[-1] <= 5.0 + 1e-3 and vh[1:].max() <= max(5.0, np.linalg.norm(v0[:2])) + 1e-3
+    # within the limits nothing changes: the plain limits hold at every step
+    m = FormationMPC("d0", cfg)
+    r = m.step(0, np.array([8.0, 0.0, -6.0]), np.array([0.0, 0.0, -0.9]), PERSON, np.zeros(3), 0.0)
+    assert r.ok and np.all(np.abs(r.plan_velocities_ned_m_s[1:, 2]) <= 1.0 + 1e-3)
