@@ -222,6 +222,10 @@ class Agent:
             self._check_gps_jump(st)
         if self.tracking is not None and st.landed_state == "on_ground" and np.isfinite(st.position_ned_m[2]):
             self.tracking.set_own_ground(st.position_ned_m[2])  # the take-off ground in the reported frame
+        if self.tracking is not None and self.cfg.track.camera_cov_from_state:
+            var = np.asarray(st.position_cov_m2, dtype=float)
+            if var.shape == (3,) and np.all(np.isfinite(var)) and np.all(var > 0):
+                self.tracking.set_own_position_cov(var)
         if self.recorder is not None:
             self._record(self.key(keys.STATE), encode(stamp_sent(st)), st.header.t_measurement_ns)
         t = time.monotonic()

@@ -139,6 +139,10 @@ class TrackConfig:
     #: ~0.05 m RTK)
     camera_position_sigma_m: float = 1.0
     camera_rotation_sigma_rad: float = 0.017
+    #: use the drone's reported position accuracy (``VehicleState.position_cov_m2``: the receiver's horizontal /
+    #: vertical accuracy, or the message's 1 m^2 default when the autopilot reports none) instead of
+    #: ``camera_position_sigma_m`` for the own detections' pose covariance and the own offset's prior
+    camera_cov_from_state: bool = True
     #: the person's height as the detector's box sees it (head top to feet, m): the range prior of the
     #: height-prior measurement and the ROI size (an operator enters the subject's height)
     person_height_m: float = 1.69

@@ -220,6 +220,14 @@ class CooperativeFilter:
             self._offset_var.append(var)
         return 6 + 3 * self._offset_ids.index(m.source_id)
 
+    def set_own_offset_variance(self, var_m2) -> None:
+        """The own offset's stationary variance (3,) m^2 (north, east, down): this drone's reported positioning
+        grade (e.g. the receiver's accuracy), replacing ``offset_sigma_m^2``. Used from the next prediction on."""
+        v = np.asarray(var_m2, dtype=float).reshape(3)
+        if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+            raise TrackerError(f"set_own_offset_variance: need 3 finite variances > 0 (m^2), got {var_m2!r}")
+        self._offset_var[0] = v.copy()
+
     def _offset_var_vec(self, n: int) -> np.ndarray:
         return np.concatenate(self._offset_var)[: n - 6]
 

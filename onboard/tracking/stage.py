@@ -114,6 +114,22 @@ class TrackingStage:
         self._seq = 0
         #: this drone's reported down while it last stood on the ground (None until then)
         self.own_ground_down_m: float | None = None
+        #: this drone's reported position variance (3,) m^2 n, e, d (None: ``camera_position_sigma_m``)
+        self.own_position_var_m2: np.ndarray | None = None
+
+    def set_own_position_cov(self, var_m2) -> None:
+        """This drone's reported position variance (north, east, down) m^2, e.g. ``VehicleState.position_cov_m2``
+        (the receiver's horizontal / vertical accuracy). It becomes the position block of the pose covariance
+        stamped on the own detections (which teammates use as this drone's offset prior) and the own offset's
+        stationary variance in the filter, in place of the configured ``camera_position_sigma_m``. The agent calls
+        it with every state sample; a change below 1 % is ignored."""
+        v = np.asarray(var_m2, dtype=float).reshape(3)
+        if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+            raise ValueError(f"set_own_position_cov: need 3 finite variances > 0 (m^2), got {var_m2!r}")
+        if self.own_position_var_m2 is not None and np.allclose(v, self.own_position_var_m2, rtol=0.01, atol=0.0):
+            return
+        self.own_position_var_m2 = v.copy()
+        self.filter.set_own_offset_variance(v)
 
     def set_own_ground(self, down_m: float) -> None:
         """This drone's reported down while it stands on the (flat) take-off ground; the agent calls it with every
@@ -153,12 +169,14 @@ class TrackingStage:
         return step * float(np.exp(-(t_ns - t0) * 1e-9 / tau))
 
     def _own_pose(self, det: Detections) -> Detections:
-        """The message with its pose covariance (the configured grade when the detector left it empty), its
+        """The message with its pose covariance (when the detector left it empty: the reported position variance,
+        :meth:`set_own_position_cov`, else the configured grade), its
         ground (the take-off ground when the detector left it empty) and its camera position taken back by a
         detected position step."""
         c = self.cfg
         if len(det.T_world_cam_cov) != 36:
-            cov = np.diag([c.camera_position_sigma_m**2] * 3 + [c.camera_rotation_sigma_rad**2] * 3)
+            pos_var = self.own_position_var_m2 if self.own_position_var_m2 is not None else [c.camera_position_sigma_m**2] * 3
+            cov = np.diag([*pos_var] + [c.camera_rotation_sigma_rad**2] * 3)
             det = msgspec.structs.replace(det, T_world_cam_cov=tuple(float(v) for v in cov.reshape(-1)))
         if det.ground_down_m is None and self.own_ground_down_m is not None:
             det = msgspec.structs.replace(det, ground_down_m=self.own_ground_down_m)

@@ -8,6 +8,7 @@ import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from onboard.transport import free_tcp_port, free_udp_base
@@ -49,8 +50,13 @@ def test_short_track_demo_follows_the_person(tmp_path):
     # the shared detections carry the sender's take-off ground in its reported frame (true ground 0 + its height bias)
     from onboard.flightlog import FlightLog
 
-    grounds = [m.msg.ground_down_m for m in FlightLog(out / "drone_1.mcap").messages(["detections"])]
+    dets = [m.msg for m in FlightLog(out / "drone_1.mcap").messages(["detections"])]
+    grounds = [d.ground_down_m for d in dets]
     assert len(grounds) > 30 and all(g is not None and abs(g) < 2.5 for g in grounds), grounds[:5]
+    # ... and the drone's reported position accuracy as their pose covariance: the simulator's GPS grade
+    # (SimConfig estimator: 1 m horizontal, 0.5 m vertical per axis) via GPS_RAW_INT h_acc / v_acc and MAVSDK
+    pos_var = np.array([np.diag(np.reshape(d.T_world_cam_cov, (6, 6)))[:3] for d in dets[10:]])
+    np.testing.assert_allclose(pos_var, np.tile([1.0, 1.0, 0.25], (len(pos_var), 1)), rtol=0.01)
 
 
 def test_short_track_demo_with_the_real_detector(tmp_path):

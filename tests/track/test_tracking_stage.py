@@ -129,3 +129,33 @@ def test_own_take_off_ground_keeps_a_height_error_out_of_the_horizontal_offset()
     assert np.linalg.norm(stamped[:2]) < 0.12, stamped
     assert np.linalg.norm(legacy[:2]) > np.linalg.norm(stamped[:2]) + 0.15, legacy
     assert np.linalg.norm(stamped - offset) < 0.15, stamped
+
+
+def test_reported_position_accuracy_becomes_the_own_pose_covariance_and_offset_prior():
+    """set_own_position_cov (the agent passes VehicleState.position_cov_m2, the receiver's accuracy): stamped as the
+    position block of the own detections' pose covariance when the detector left it empty, and used as the own
+    offset's prior (vertical 0.25 m^2 instead of the configured 1 m^2 leaves a smaller posterior variance)."""
+    import msgspec
+
+    def first_frame_var(var):
+        stage = TrackingStage("drone_0")
+        stage.set_camera_info(camera_info())
+        if var is not None:
+            stage.set_own_position_cov(var)
+        det, _ = detections_message(0, 1.0, 0, np.random.default_rng(5))
+        det = msgspec.structs.replace(det, T_world_cam_cov=())  # the detector leaves the covariance to the stage
+        shared = stage.on_own_detections(det)
+        cov = np.reshape(shared.T_world_cam_cov, (6, 6))
+        _, P, _ = stage.filter.state
+        return np.diag(cov), np.diag(P)[6:9]
+
+    cov_cfg, P_cfg = first_frame_var(None)
+    np.testing.assert_allclose(cov_cfg[:3], [1.0, 1.0, 1.0])  # camera_position_sigma_m = 1 m
+    cov_rep, P_rep = first_frame_var((1.0, 1.0, 0.25))
+    np.testing.assert_allclose(cov_rep[:3], [1.0, 1.0, 0.25])
+    np.testing.assert_allclose(cov_rep[3:], cov_cfg[3:])  # attitude: still the configured grade
+    assert P_rep[2] < 0.25 < P_cfg[2], (P_rep, P_cfg)
+    stage = TrackingStage("drone_0")
+    for bad in ((np.nan, 1.0, 1.0), (1.0, 0.0, 1.0), (1.0, 1.0)):
+        with pytest.raises(ValueError):
+            stage.set_own_position_cov(bad)
