@@ -417,15 +417,16 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if cfg.reconstruct:
         if _has_command("reconstruct"):
             t0 = time.monotonic()
-            t0_wall = time.time()
+            # the method that runs writes its summary: multiview -> reconstruction/, monocular (one drone) ->
+            # reconstruction_monocular/; a summary left there by an earlier run in this folder must not be taken
+            summaries = (out / "reconstruction" / "summary.json", out / "reconstruction_monocular" / "summary.json")
+            for rs in summaries:
+                rs.unlink(missing_ok=True)
             with open(logs / "reconstruct.log", "w") as f:
                 r = subprocess.run(py + ["reconstruct", str(out)], stdout=f, stderr=subprocess.STDOUT)
             recon = {"ran": True, "exit_code": r.returncode, "seconds": round(time.monotonic() - t0, 1),
                      "log": str(logs / "reconstruct.log")}
-            # the method that ran wrote its summary now: multiview -> reconstruction/, monocular (one drone) ->
-            # reconstruction_monocular/
-            fresh = [rs for rs in (out / "reconstruction" / "summary.json", out / "reconstruction_monocular" / "summary.json")
-                     if rs.is_file() and rs.stat().st_mtime >= t0_wall - 1.0]
+            fresh = [rs for rs in summaries if rs.is_file()]
             if r.returncode == 0 and fresh:
                 recon["summary"] = json.loads(fresh[0].read_text())
             log.info("skycap reconstruct %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
