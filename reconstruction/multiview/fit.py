@@ -477,6 +477,17 @@ def _pose_samples(capture: Capture, obs, t_grid: np.ndarray, tracks: list[np.nda
             "cam_ranges": ranges, "j0": j0, "beta": beta, "src": src}  # fmt: skip
 
 
+def _cumulative_rotations(steps: Rotation) -> Rotation:
+    """G (n + 1,) with G[0] = identity and G[k] = steps[0] * ... * steps[k - 1] (the rotation integrated over
+    the first k steps), as a prefix scan in log2(n) vectorised compositions instead of n single ones."""
+    q = np.concatenate([[[0.0, 0.0, 0.0, 1.0]], steps.as_quat()])  # scipy order (x, y, z, w)
+    d = 1
+    while d < len(q):
+        q = np.concatenate([q[:d], (Rotation.from_quat(q[:-d]) * Rotation.from_quat(q[d:])).as_quat()])
+        d *= 2
+    return Rotation.from_quat(q)
+
+
 def _rate_constraints(capture: Capture, samp: dict, knots: dict) -> dict:
     """Velocity / angular-velocity constraints between consecutive knots of every camera that has them.
 
@@ -524,11 +535,7 @@ def _rate_constraints(capture: Capture, samp: dict, knots: dict) -> dict:
                 out.setdefault("vel", {}).setdefault(key, []).append(val)
         if cam.has_angular_velocity:
             om = cam.omega_cam_radps[idx]
-            steps = Rotation.from_rotvec(om[:-1] * dts[:, None])
-            G = [Rotation.identity()]
-            for r in steps:
-                G.append(G[-1] * r)
-            G = Rotation.concatenate(G)
+            G = _cumulative_rotations(Rotation.from_rotvec(om[:-1] * dts[:, None]))
             kk = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, len(ts) - 2)
             Gq = G[kk] * Rotation.from_rotvec(om[kk] * (tq - ts[kk])[:, None])
             M = (Gq[:-1].inv() * Gq[1:]).as_matrix()

@@ -35,6 +35,23 @@ def test_true_rates_integrate_back_to_the_track():
     np.testing.assert_allclose(disp, T[-1, :3, 3] - T[0, :3, 3], atol=2e-3)
 
 
+def test_cumulative_rotations_compose_the_steps_in_order():
+    """The prefix scan of the fit's gyro integration equals composing the steps one by one (non-commuting steps,
+    lengths that are and are not powers of two, and none)."""
+    from reconstruction.multiview.fit import _cumulative_rotations
+
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 5, 64, 301):
+        steps = Rotation.from_rotvec(rng.normal(0.0, 0.3, (n, 3)).reshape(n, 3))
+        G = _cumulative_rotations(steps)
+        R = np.eye(3)
+        ref = [R]
+        for k in range(n):
+            R = R @ steps[k].as_matrix()
+            ref.append(R)
+        np.testing.assert_allclose(G.as_matrix(), np.array(ref), atol=1e-12)
+
+
 def test_fused_track_averages_white_pose_noise_over_the_whole_track():
     rng = np.random.default_rng(0)
     t_ns, T = _orbit()
