@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from reconstruction.capture import Capture, CameraCapture, CaptureError
 from reconstruction.multiview.fit import FitConfig, fit_capture
-from reconstruction.multiview.observations import camera_track, fuse_rates, smooth_poses
+from reconstruction.multiview.observations import fuse_rates, smooth_poses
 from reconstruction.synth import SynthConfig, procedural_walker, synthesize_capture, true_rates
 from skycap.frames import make_T
 
