@@ -273,6 +273,7 @@ class FormationMPC:
         Wp = ca.diag(ca.DM([c.w_position_h, c.w_position_h, c.w_position_down]))
         sides = c.polygon_sides // 2
         dirs = [(math.cos(math.pi * s / sides), math.sin(math.pi * s / sides)) for s in range(sides)]
+        self._polygon_dirs = np.array(dirs)  # (sides, 2): the rows of the horizontal speed / acceleration polygons
         for k in range(N):
             uk = U[:, k]
             xn = X[:, k]
@@ -328,8 +329,9 @@ class FormationMPC:
             lbw += [-big, -big, -c.max_accel_down_m_s2] + [-big, -big, -big, -big, -big, -c.max_speed_down_m_s]
             ubw += [big, big, c.max_accel_down_m_s2] + [big, big, big, big, big, c.max_speed_down_m_s]
         self._lbw0, self._ubw0 = np.array(lbw), np.array(ubw)
-        vpol = c.max_speed_h_m_s * math.cos(math.pi / c.polygon_sides)
-        apol = c.max_accel_h_m_s2 * math.cos(math.pi / c.polygon_sides)
+        # inner-polygon bounds of the horizontal speed and acceleration discs
+        self._vpol = vpol = c.max_speed_h_m_s * math.cos(math.pi / c.polygon_sides)
+        self._apol = apol = c.max_accel_h_m_s2 * math.cos(math.pi / c.polygon_sides)
         lbg_step = [0.0] * 6 + [-vpol, -apol] * sides + [-np.inf] * (L + M)
         ubg_step = [0.0] * 6 + [vpol, apol] * sides + [np.inf] * (L + M)
         self._lbg0 = np.tile(lbg_step, N)
@@ -351,29 +353,22 @@ class FormationMPC:
         vz = float(v0[2])
         if abs(vz) > c.max_speed_down_m_s:
             lim = np.maximum(c.max_speed_down_m_s, abs(vz) - brake * c.max_accel_down_m_s2 * t_steps_s)
-            for k in range(N):
-                i = k * 9 + 8  # v_down of x_{k+1}
-                if vz > 0:
-                    ubw[i] = lim[k]
-                else:
-                    lbw[i] = -lim[k]
-        sides = c.polygon_sides // 2
-        vpol = c.max_speed_h_m_s * math.cos(math.pi / c.polygon_sides)
-        apol = c.max_accel_h_m_s2 * math.cos(math.pi / c.polygon_sides)
+            i = np.arange(N) * 9 + 8  # v_down of x_{k+1}
+            if vz > 0:
+                ubw[i] = lim
+            else:
+                lbw[i] = -lim
         vh = float(np.hypot(v0[0], v0[1]))
         if vh <= 1e-9:
             return
-        dirs = np.array([(math.cos(math.pi * s / sides), math.sin(math.pi * s / sides)) for s in range(sides)])
-        proj = np.abs(dirs @ v0[:2])  # (sides,)
-        if not np.any(proj > vpol):
+        proj = np.abs(self._polygon_dirs @ v0[:2])  # (sides,)
+        if not np.any(proj > self._vpol):
             return
-        shrink = np.maximum(0.0, 1.0 - brake * apol * t_steps_s / vh)  # (N,)
-        rps = self._rows_per_step
-        for k in range(N):
-            lim = np.maximum(vpol, proj * shrink[k])
-            rows = k * rps + 6 + 2 * np.arange(sides)
-            lbg[rows] = -lim
-            ubg[rows] = lim
+        shrink = np.maximum(0.0, 1.0 - brake * self._apol * t_steps_s / vh)  # (N,)
+        lim = np.maximum(self._vpol, shrink[:, None] * proj[None, :])  # (N, sides)
+        rows = np.arange(N)[:, None] * self._rows_per_step + 6 + 2 * np.arange(len(proj))[None, :]  # speed rows
+        lbg[rows] = -lim
+        ubg[rows] = lim
 
     def _idx_pos(self, k: int) -> slice:
         """w indices of p_{k+1} (k = 0 .. N-1)."""
