@@ -76,6 +76,16 @@ def main() -> int:
             r = bundle_adjust(W, res.weights, res.init.S, res.init.R, d.limbs, bcfg)
             tb.append(time.perf_counter() - t0)
         rows.append((name, min(tb), len(r.objective) - 1))
+    # the learned single-frame lift (beyond the paper; the pipeline's third start of the perspective BA)
+    from reconstruction.monocular.lifter import PoseLifter
+
+    lifter = PoseLifter.load(cfg.lifter.path or None)
+    tl = []
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        lifter.lift(W, res.confidence, cfg.lifter)
+        tl.append(time.perf_counter() - t0)
+    rows.append(("learned single-frame lift (torch)", min(tl), cfg.lifter.rounds))
     # perspective BA in the world with the drone's camera poses, one start (the paper BA placed in the world)
     T_wc = view.T_world_cam[: args.frames]
     pc = cfg.perspective

@@ -153,7 +153,11 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
         Xr = to_world_metric(res.ba_extended.S, res.ba_extended.R, view.W_px, res.weights, view.T_world_cam, view.K,
                              cfg.method.perspective.body_rms_radius_m, frame=res.ba_extended_frame)  # fmt: skip
         out["mpjpe_mm_ba_extended_rough_world"] = float(mpjpe_mm(Xr, view.gt_ned_m, joints=LIMB_JOINTS))
+    if res.lifted is not None:
+        out["pa_mpjpe_mm_lifted"], out["per_joint_mm_lifted"] = _score(res.lifted.S, view.gt_ned_m)
+        out["lifted_seconds"] = res.lifted_seconds
     if res.ba_perspective is not None:
+        out["perspective_start"] = res.perspective_start
         Xp = res.ba_perspective.X
         out["pa_mpjpe_mm_ba_perspective"], out["per_joint_mm_perspective"] = _score(np.swapaxes(Xp, 1, 2), view.gt_ned_m)
         out["mpjpe_mm_ba_perspective"] = float(mpjpe_mm(Xp, view.gt_ned_m, joints=LIMB_JOINTS))
@@ -164,6 +168,7 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
         out["pa_mpjpe_mm_model"], out["per_joint_mm_model"] = _score(np.swapaxes(Xm, 1, 2), view.gt_ned_m)
         out["mpjpe_mm_model"] = float(mpjpe_mm(Xm, view.gt_ned_m, joints=LIMB_JOINTS))
         out["model_seconds"] = res.model_seconds
+        out["model_start"] = res.model_start
     out["init_seconds"] = res.init_seconds
     out["ba_seconds"] = res.ba_seconds
     out["total_seconds"] = total
@@ -193,7 +198,7 @@ def sweep_means(rows: list[dict]) -> dict:
     """Mean over motions per angular velocity: {key: (omegas, values)}."""
     omegas = sorted({r["angular_velocity_deg_s"] for r in rows})
     keys = ["pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_paper_order", "pa_mpjpe_mm_ba_no_articulation",
-            "pa_mpjpe_mm_ba_extended",
+            "pa_mpjpe_mm_ba_extended", "pa_mpjpe_mm_lifted",
             "pa_mpjpe_mm_ba_perspective", "mpjpe_mm_ba_perspective", "pa_mpjpe_mm_model", "mpjpe_mm_model"]
     out = {"angular_velocity_deg_s": omegas}
     for k in keys:
@@ -218,6 +223,7 @@ def plot_sweep(means: dict, path: str | Path, title: str = "") -> Path:
         ("pa_mpjpe_mm_ba_paper_order", "BA (paper's update order)", "x--"),
         ("pa_mpjpe_mm_ba", "BA (articulation warm-up)", "^-"),
         ("pa_mpjpe_mm_ba_extended", "BA extended (ours)", "d:"),
+        ("pa_mpjpe_mm_lifted", "learned single-frame lift (ours)", "*:"),
         ("pa_mpjpe_mm_ba_perspective", "BA perspective, known cameras (ours)", "v-"),
         ("pa_mpjpe_mm_model", "body model after BA perspective (ours)", "P-"),
     ]:

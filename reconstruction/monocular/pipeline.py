@@ -14,13 +14,16 @@
    R_t to it, with the poses expressed in the world frame);
 4. optionally (``perspective=True``, needs the camera poses and intrinsics) the perspective BA of
    :mod:`reconstruction.monocular.perspective` in the world frame (NED metres), started from the paper-order
-   BA and from the extended BA placed in the world, keeping the lower objective;
+   BA, from the extended BA and (``MonocularConfig.lifter``, beyond the paper) from the learned single-frame lift
+   of :mod:`reconstruction.monocular.lifter`, each placed in the world, keeping the lowest objective;
 5. then (``MonocularConfig.model.enabled``, on by default when the perspective BA runs) the body model fitted to
    the keypoints with the drone's camera poses, started from the perspective BA: the multi-view product fit
    (:func:`reconstruction.multiview.fit.fit_capture`) with one camera -- the skeleton body model with one shape
    for the clip, the learned pose prior and joint limits, temporal smoothness, a robust 2D term with left/right
    swap handling -- which settles the depth ambiguities that the dictionary's sparse code leaves; Adam, then
-   L-BFGS to convergence (:func:`model_fit`; result ``MonocularResult.model``).
+   L-BFGS to convergence (:func:`model_fit`; result ``MonocularResult.model``). When the kept perspective BA is not
+   the lifted start's, the body model is fitted from the lifted start's too and the lower energy is kept
+   (``ModelFitConfig.also_from_lifted``; ``MonocularResult.model_start``).
 
 Poses come back in the orthographic camera's pixel units; :func:`to_world_metric` places them in the
 world (NED, metres) using the camera poses and an assumed body size.
@@ -29,6 +32,7 @@ world (NED, metres) using the camera poses and an assumed body size.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 
@@ -36,6 +40,7 @@ import numpy as np
 
 from reconstruction.monocular.ba import BAConfig, BAResult, bundle_adjust
 from reconstruction.monocular.dictionary import PoseDictionary
+from reconstruction.monocular.lifter import LifterConfig, PoseLifter
 from reconstruction.monocular.linalg import complete_rotation
 from reconstruction.monocular.perspective import (
     PerspectiveConfig,
@@ -83,6 +88,7 @@ class ModelFitConfig:
 
     enabled: bool = True
     fit: FitConfig = dataclasses.field(default_factory=_model_fit_defaults)
+    also_from_lifted: bool = True  # fit from the lifted start's perspective BA too; keep the lower energy
     pos_sigma_m: float = 0.5  # the drone's camera position and attitude uncertainty (RMS 3D; used when the
     rot_sigma_deg: float = 2.0  # fit refines the camera, ``fit.refine_cameras``)
 
@@ -95,6 +101,11 @@ class MonocularConfig:
     extension: ExtensionConfig = dataclasses.field(default_factory=ExtensionConfig)
     perspective: PerspectiveConfig = dataclasses.field(default_factory=PerspectiveConfig)
     model: ModelFitConfig = dataclasses.field(default_factory=ModelFitConfig)
+    lifter: LifterConfig = dataclasses.field(default_factory=LifterConfig)  # an extra start of the perspective BA
+    #: which perspective BA the body model starts from: "lowest_objective" (of the starts run; then the model is also
+    #: fitted from the lifted start, ``model.also_from_lifted``), or one start's name ("ba_paper", "ba_extended",
+    #: "lifted": that start only, for ablations)
+    perspective_start: str = "lowest_objective"
     ablation_no_articulation: bool = True  # also run BA with gamma = 0 (the paper's "BA w/o art.")
     ablation_paper_order: bool = True  # also run the paper's BA exactly (gamma from the start, L by SVD) when the
     # default BA differs from it (adaptive gamma warm-up, adult-proportion L; see BAConfig); the perspective BA
@@ -118,6 +129,11 @@ class MonocularResult:
     model_seconds: float = 0.0
     #: (T, 17) the confidence after track cleaning (what the body model fits; ``weights`` also has the init's inliers)
     confidence: np.ndarray | None = None
+    lifted: InitResult | None = None  # the learned single-frame lift (beyond the paper); None unless it ran
+    lifted_seconds: float = 0.0
+    #: which start the kept perspective BA came from: "ba_paper", "ba_extended" or "lifted"
+    perspective_start: str = ""
+    model_start: str = ""  # which perspective BA the kept body model started from (lower model energy)
 
 
 def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
@@ -131,6 +147,11 @@ def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
     G = np.swapaxes(R_cw, 1, 2) @ Rbar
     S_world = G @ init.S
     return S_world, R_cw[:, :2, :].copy()
+
+
+@functools.lru_cache(maxsize=4)
+def _lifter(path: str) -> PoseLifter:
+    return PoseLifter.load(path or None)
 
 
 def reconstruct_monocular(
@@ -170,6 +191,7 @@ def reconstruct_monocular(
         conf = conf * ~flagged
         log.info("track cleaning: %d of %d keypoints flagged (track jitter %.1f px)", int(flagged.sum()),
                  int((conf > 0).sum() + flagged.sum()), noise_px)  # fmt: skip
+    lifter = _lifter(cfg.lifter.path) if perspective and cfg.lifter.enabled else None  # a bad path fails here, early
     t0 = time.perf_counter()
     init = initialise(W_px, conf, dictionary, cfg.init, noise_px=noise_px)
     init_s = time.perf_counter() - t0
@@ -199,7 +221,8 @@ def reconstruct_monocular(
             frame = "world"
         else:
             ext = bundle_adjust(W_px, w, init.S, init.R, dictionary.limbs, bcfg)
-    persp, persp_s = None, 0.0
+    persp, persp_s, persp_start, runs, model_start = None, 0.0, "", {}, ""
+    lifted, lifted_s = None, 0.0
     if perspective:
         if T_world_cam is None or K is None:
             raise SkycapError("the perspective BA needs the camera poses T_world_cam (T, 4, 4) and intrinsics K; "
@@ -212,25 +235,51 @@ def reconstruct_monocular(
         # from the paper-order BA (as measured: starting from the warm-up BA too, or instead, changed the kept
         # minimum on 002_05 by +1.4 to +1.7 mm PA and gained nothing on the mean; see results/RESULTS.md)
         b = ba_paper if ba_paper is not None else ba
-        starts = [orthographic_to_world(b.S, b.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, **place)]
+        starts = {"ba_paper": orthographic_to_world(b.S, b.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, **place)}
         if ext is not None:
-            starts.append(orthographic_to_world(ext.S, ext.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m, frame=frame, **place))
-        # multi-start (paper-order BA, extended BA placed in the world): keep the lowest objective
+            starts["ba_extended"] = orthographic_to_world(ext.S, ext.R, W_px, w, T_wc, Kf, pc.body_rms_radius_m,
+                                                          frame=frame, **place)  # fmt: skip
+        if lifter is not None:
+            t1 = time.perf_counter()
+            lifted = lifter.lift(W_px, conf, cfg.lifter, noise_px=noise_px)
+            lifted_s = time.perf_counter() - t1
+            starts["lifted"] = orthographic_to_world(lifted.S, lifted.R, W_px, conf * lifted.inlier, T_wc, Kf,
+                                                     pc.body_rms_radius_m, **place)  # fmt: skip
+        # multi-start: keep the lowest objective (every run fits the same keypoints with the same weights)
         t_s = None if t_ns is None else (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9
-        runs = [perspective_bundle_adjust(W_px, w, T_wc, Kf, X0, dictionary.limbs, dt_s=dt_s, cfg=cfg.perspective, t_s=t_s)
-                for X0 in starts]  # fmt: skip
-        persp = min(runs, key=lambda r: r.objective_final_sigma[1])
+        runs = {k: perspective_bundle_adjust(W_px, w, T_wc, Kf, X0, dictionary.limbs, dt_s=dt_s, cfg=cfg.perspective, t_s=t_s)
+                for k, X0 in starts.items()}  # fmt: skip
+        if cfg.perspective_start == "lowest_objective":
+            persp_start = min(runs, key=lambda k: runs[k].objective_final_sigma[1])
+        elif cfg.perspective_start in runs:
+            persp_start = cfg.perspective_start
+        else:
+            raise SkycapError(f"perspective_start {cfg.perspective_start!r} is not one of the starts run here "
+                              f"({', '.join(['lowest_objective', *runs])}); pick one of those")  # fmt: skip
+        persp = runs[persp_start]
+        log.info("perspective BA: kept the start from %s (objectives %s)", persp_start,
+                 ", ".join(f"{k} {r.objective_final_sigma[1]:.2f}" for k, r in runs.items()))  # fmt: skip
         persp_s = time.perf_counter() - t0
     model, model_s = None, 0.0
     if persp is not None and cfg.model.enabled:
         t0 = time.perf_counter()
         t_f = np.asarray(t_ns, dtype=np.int64) if t_ns is not None else np.round(np.arange(T) * dt_s * 1e9).astype(np.int64)
-        model = model_fit(W_px, conf, np.asarray(T_world_cam, dtype=float), np.asarray(K, dtype=float), t_f, persp.X, cfg.model)
+        fit = lambda X0: model_fit(W_px, conf, np.asarray(T_world_cam, dtype=float), np.asarray(K, dtype=float), t_f, X0, cfg.model)  # noqa: E731
+        model, model_start = fit(persp.X), persp_start
+        free = cfg.perspective_start == "lowest_objective"  # a named start is an ablation: that start only
+        if cfg.model.also_from_lifted and free and "lifted" in runs and persp_start != "lifted":
+            # the perspective BA's objective does not rank the starts' depths well; the body model's energy (its
+            # pose prior and joint limits) does (results/RESULTS.md): fit from the lifted start too, keep the lower
+            other = fit(runs["lifted"].X)
+            log.info("body model: energy %.3f from %s, %.3f from lifted", model.energy, persp_start, other.energy)
+            if other.energy < model.energy:
+                model, model_start = other, "lifted"
         model_s = time.perf_counter() - t0
     return MonocularResult(
         init=init, ba=ba, ba_no_articulation=ba0, ba_extended=ext, weights=w, init_seconds=init_s, ba_seconds=ba_s,
         ba_extended_frame=frame, ba_perspective=persp, perspective_seconds=persp_s, ba_paper=ba_paper,
-        model=model, model_seconds=model_s, confidence=conf,
+        model=model, model_seconds=model_s, confidence=conf, lifted=lifted, lifted_seconds=lifted_s,
+        perspective_start=persp_start, model_start=model_start,
     )  # fmt: skip
 
 

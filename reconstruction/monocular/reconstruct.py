@@ -8,7 +8,8 @@ with :func:`reconstruction.export.export_motion`, plus ``config.toml`` and ``sum
 
 Placement in the world: the default (``variant="perspective"``) is the perspective BA with the drone's camera
 poses (:mod:`reconstruction.monocular.perspective`): the body's metric scale from an adult bone-length prior and
-the orbit's parallax (``summary.json``: ``body_scale``); then, by default (``cfg.model.enabled``), the body model
+the orbit's parallax (``summary.json``: ``body_scale``), started from the orthographic BAs and from the learned
+single-frame lift (``summary.json``: ``perspective_start``, the start kept); then, by default (``cfg.model.enabled``), the body model
 fitted from it (:func:`reconstruction.monocular.pipeline.model_fit`) gives the exported joints and the model
 parameters (``root_orient``, ``pose``, ``transl``, ``shape`` in the npz, as from the multi-view path). The orthographic variants have no metric scale: the
 person is given the RMS joint radius of the dictionary's mean pose (or ``body_rms_radius_m``) and placed along
@@ -136,7 +137,8 @@ def reconstruct_capture(
         "method": "monocular", "variant": variant, "camera": cam.name, "detector": cam.detectors[det],
         "frames": int(len(t_frame_ns)), "init_seconds": res.init_seconds, "ba_seconds": res.ba_seconds,
         "perspective_seconds": res.perspective_seconds, "body_model_fit": res.model is not None,
-        "model_seconds": res.model_seconds,
+        "model_seconds": res.model_seconds, "lifted_seconds": res.lifted_seconds,
+        "perspective_start": res.perspective_start, "model_start": res.model_start,
         "body_rms_radius_m": radius, "outputs": {k: str(v) for k, v in paths.items()},
         **({"body_scale": res.ba_perspective.body_scale,
             "bone_rms_m": res.ba_perspective.body_scale * cfg.perspective.body_bone_rms_m} if persp else {}),
