@@ -22,8 +22,10 @@
    for the clip, the learned pose prior and joint limits, temporal smoothness, a robust 2D term with left/right
    swap handling -- which settles the depth ambiguities that the dictionary's sparse code leaves; Adam, then
    L-BFGS to convergence (:func:`model_fit`; result ``MonocularResult.model``). When the kept perspective BA is not
-   the lifted start's, the body model is fitted from the lifted start's too and the lower energy is kept
-   (``ModelFitConfig.also_from_lifted``; ``MonocularResult.model_start``).
+   the lifted start's, the body model is fitted from the lifted start's too -- its posture, with the hip path and
+   body size of the kept one (``ModelFitConfig.lifted_placed_like_kept``: the perspective objective ranks the
+   placements, the model energy the postures) -- and the lower energy is kept (``ModelFitConfig.also_from_lifted``;
+   ``MonocularResult.model_start``).
 
 Poses come back in the orthographic camera's pixel units; :func:`to_world_metric` places them in the
 world (NED, metres) using the camera poses and an assumed body size.
@@ -50,6 +52,7 @@ from reconstruction.monocular.perspective import (
 )
 from reconstruction.multiview.fit import FitConfig, FitResult
 from skycap.errors import SkycapError
+from skycap.skeleton import COCO17
 from reconstruction.monocular.single_frame import InitConfig, InitResult, initialise
 from reconstruction.monocular.tracks import temporal_outlier_mask, track_noise_px
 
@@ -89,6 +92,7 @@ class ModelFitConfig:
     enabled: bool = True
     fit: FitConfig = dataclasses.field(default_factory=_model_fit_defaults)
     also_from_lifted: bool = True  # fit from the lifted start's perspective BA too; keep the lower energy
+    lifted_placed_like_kept: bool = True  # ... with its hip path and body size taken from the kept perspective BA
     pos_sigma_m: float = 0.5  # the drone's camera position and attitude uncertainty (RMS 3D; used when the
     rot_sigma_deg: float = 2.0  # fit refines the camera, ``fit.refine_cameras``)
 
@@ -147,6 +151,16 @@ def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
     G = np.swapaxes(R_cw, 1, 2) @ Rbar
     S_world = G @ init.S
     return S_world, R_cw[:, :2, :].copy()
+
+
+def _placed_like(X: np.ndarray, ref: np.ndarray, limbs) -> np.ndarray:
+    """Joints X (T, 17, 3) moved and scaled to the placement of ``ref`` (T, 17, 3): per frame the hip centre of ref,
+    one size for the clip (the median ratio of the RMS bone lengths); X's posture and orientation are kept."""
+    a, b = np.array([l[0] for l in limbs]), np.array([l[1] for l in limbs])
+    bones = lambda Y: np.sqrt(np.mean(np.sum((Y[:, a] - Y[:, b]) ** 2, -1), -1))  # noqa: E731
+    s = float(np.median(bones(ref) / np.maximum(bones(X), 1e-9)))
+    hip = lambda Y: 0.5 * (Y[:, COCO17["left_hip"]] + Y[:, COCO17["right_hip"]])  # noqa: E731
+    return hip(ref)[:, None] + s * (X - hip(X)[:, None])
 
 
 @functools.lru_cache(maxsize=4)
@@ -270,7 +284,7 @@ def reconstruct_monocular(
         if cfg.model.also_from_lifted and free and "lifted" in runs and persp_start != "lifted":
             # the perspective BA's objective does not rank the starts' depths well; the body model's energy (its
             # pose prior and joint limits) does (results/RESULTS.md): fit from the lifted start too, keep the lower
-            other = fit(runs["lifted"].X)
+            other = fit(_placed_like(runs["lifted"].X, persp.X, dictionary.limbs) if cfg.model.lifted_placed_like_kept else runs["lifted"].X)
             log.info("body model: energy %.3f from %s, %.3f from lifted", model.energy, persp_start, other.energy)
             if other.energy < model.energy:
                 model, model_start = other, "lifted"

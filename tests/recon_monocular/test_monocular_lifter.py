@@ -183,3 +183,20 @@ def test_body_model_is_also_fitted_from_the_lifted_start_and_keeps_the_lower_ene
         assert both.model.energy <= one.model.energy + 1e-9
     with pytest.raises(Exception, match="perspective_start 'nope'.*pick one"):
         reconstruct_monocular(W, None, load_dictionary(), dataclasses.replace(cfg, perspective_start="nope"), **kw)
+
+
+def test_lifted_start_takes_the_kept_placement_and_keeps_its_posture():
+    from scipy.spatial.transform import Rotation
+
+    from reconstruction.monocular.pipeline import _placed_like
+    from skycap.skeleton import COCO17, COCO17_LIMBS
+
+    X = _punch()[:20].astype(float)
+    rng = np.random.default_rng(0)
+    R = Rotation.from_euler("z", 0.7).as_matrix()
+    ref = 1.1 * np.einsum("ij,tkj->tki", R, X) + rng.normal(0, 1, (20, 1, 3))  # other place, size, heading
+    out = _placed_like(X, ref, COCO17_LIMBS)
+    hip = lambda Y: 0.5 * (Y[:, COCO17["left_hip"]] + Y[:, COCO17["right_hip"]])  # noqa: E731
+    np.testing.assert_allclose(hip(out), hip(ref), atol=1e-9)  # the kept hip path
+    d = lambda Y: Y - hip(Y)[:, None]  # noqa: E731
+    np.testing.assert_allclose(d(out), 1.1 * d(X), atol=1e-9)  # the start's posture and heading, the kept size
