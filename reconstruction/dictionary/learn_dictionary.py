@@ -43,20 +43,27 @@ EVAL_CLIPS = ("001_01", "002_01", "002_02", "002_05", "002_10", "003_01", "003_0
 log = logging.getLogger("learn_dictionary")
 
 
-def load_training_poses(cmu_dir: Path, fps: float = 10.0, exclude=EVAL_CLIPS) -> tuple[np.ndarray, list[str]]:
-    """Canonical poses (N, 3, 17) from every BVH under ``cmu_dir`` except ``exclude``; and the clip names."""
+def load_world_poses(cmu_dir: Path, fps: float = 10.0, exclude=EVAL_CLIPS) -> tuple[np.ndarray, list[str]]:
+    """World poses (N, 17, 3) NED metres, each centred on its joint mean, from every BVH under ``cmu_dir`` except
+    ``exclude`` (skipping the prepended T-pose frame, at ``fps``), each clip followed by its left/right mirror image;
+    and the clip names."""
     files = sorted(p for p in Path(cmu_dir).rglob("*.bvh") if p.stem not in set(exclude))
     if not files:
-        raise SystemExit(f"no training BVH files under {cmu_dir}")
-    out, names = [], []
+        raise SystemExit(f"no training BVH files under {cmu_dir}; pass the CMU folder with --cmu")
+    out = []
     for f in files:
         m = read_bvh(f)
         step = max(1, int(round(m.fps / fps)))
         J = mocap_to_coco17(m.slice(1, None, step))
-        Jm = J[:, list(COCO17_FLIP)] * np.array([1.0, -1.0, 1.0])  # mirror east <-> west and relabel
-        out += [canonicalize_poses(J), canonicalize_poses(Jm)]
-        names.append(f.stem)
-    return np.concatenate(out), names
+        out += [J, J[:, list(COCO17_FLIP)] * np.array([1.0, -1.0, 1.0])]  # mirror east <-> west and relabel
+    X = np.concatenate(out)
+    return X - X.mean(1, keepdims=True), [f.stem for f in files]
+
+
+def load_training_poses(cmu_dir: Path, fps: float = 10.0, exclude=EVAL_CLIPS) -> tuple[np.ndarray, list[str]]:
+    """Canonical poses (N, 3, 17) from every BVH under ``cmu_dir`` except ``exclude``; and the clip names."""
+    X, names = load_world_poses(cmu_dir, fps, exclude)
+    return canonicalize_poses(X), names
 
 
 def main(argv: list[str] | None = None) -> int:

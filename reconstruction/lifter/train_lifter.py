@@ -27,30 +27,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from reconstruction.dictionary.learn_dictionary import CMU_CREDIT, EVAL_CLIPS
+from reconstruction.dictionary.learn_dictionary import CMU_CREDIT, EVAL_CLIPS, load_world_poses
 from reconstruction.monocular.lifter import DEFAULT_LIFTER, LifterNet, PoseLifter, ViewSampling, training_batch
-from skycap.bvh import read_bvh
-from skycap.skeleton import COCO17_FLIP, mocap_to_coco17
 
 #: Never trained on: the monocular evaluation clips and four clips the lift is scored on (dance, climbing).
 HELD_OUT = EVAL_CLIPS + ("001_14", "005_04", "005_07", "005_12")
 
 log = logging.getLogger("train_lifter")
-
-
-def load_world_poses(cmu_dir: Path, fps: float = 30.0, exclude=HELD_OUT) -> tuple[np.ndarray, list[str]]:
-    """World poses (N, 17, 3) NED metres, centred, from every BVH under ``cmu_dir`` but ``exclude``, with mirrors."""
-    files = sorted(p for p in Path(cmu_dir).rglob("*.bvh") if p.stem not in set(exclude))
-    if not files:
-        raise SystemExit(f"no training BVH files under {cmu_dir}; pass the CMU folder with --cmu")
-    out = []
-    for f in files:
-        m = read_bvh(f)
-        step = max(1, int(round(m.fps / fps)))
-        J = mocap_to_coco17(m.slice(1, None, step))
-        out += [J, J[:, list(COCO17_FLIP)] * np.array([1.0, -1.0, 1.0])]  # mirror east <-> west and relabel
-    X = np.concatenate(out)
-    return X - X.mean(1, keepdims=True), [f.stem for f in files]
 
 
 def train(poses: np.ndarray, steps: int, batch: int = 512, lr: float = 2e-3, hidden: int = 512, blocks: int = 2,

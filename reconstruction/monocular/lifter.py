@@ -36,6 +36,7 @@ import torch
 
 from reconstruction.monocular.dictionary import canonical_rotation
 from reconstruction.monocular.single_frame import InitResult
+from reconstruction.synth import look_at_T_world_cam
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
@@ -104,9 +105,7 @@ def camera_rotations(azimuth_rad: np.ndarray, elevation_rad: np.ndarray, roll_ra
     z (optical axis), in NED."""
     f = np.stack([np.cos(azimuth_rad) * np.cos(elevation_rad), np.sin(azimuth_rad) * np.cos(elevation_rad),
                   np.sin(elevation_rad)], -1)  # fmt: skip
-    r = np.cross(np.array([0.0, 0.0, 1.0]), f)
-    r /= np.linalg.norm(r, axis=-1, keepdims=True)
-    R = np.stack([r, np.cross(f, r), f], 1)
+    R = np.swapaxes(look_at_T_world_cam(-f, np.zeros_like(f))[:, :3, :3], 1, 2)  # the simulator's camera axes
     c, s = np.cos(roll_rad), np.sin(roll_rad)
     Rz = np.zeros_like(R)
     Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
@@ -217,11 +216,10 @@ class PoseLifter:
         Rb = canonical_rotation(S_cam)
         S = np.einsum("nij,nkj->nik", Rb, S_cam)
         R = np.swapaxes(Rb, 1, 2)[:, :2]
-        w = m
         model = R @ S
-        t = (np.nan_to_num(W - model) * w[:, None]).sum(-1) / w.sum(-1).clip(1.0)[:, None]
+        t = (np.nan_to_num(W - model) * m[:, None]).sum(-1) / m.sum(-1).clip(1.0)[:, None]
         resid = np.linalg.norm(W - (model + t[..., None]), axis=1)  # NaN where missing
-        return InitResult(S=S, R=R, t=t, coeffs=np.zeros((T, 0)), weights=w, inlier=m > 0, residual_px=resid)
+        return InitResult(S=S, R=R, t=t, coeffs=np.zeros((T, 0)), weights=m, inlier=m > 0, residual_px=resid)
 
 
 def _scale_shift(p: np.ndarray, o: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

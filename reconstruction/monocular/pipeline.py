@@ -40,7 +40,7 @@ import time
 
 import numpy as np
 
-from reconstruction.monocular.ba import BAConfig, BAResult, bundle_adjust
+from reconstruction.monocular.ba import BAConfig, BAResult, bundle_adjust, limb_index_arrays, squared_limb_lengths
 from reconstruction.monocular.dictionary import PoseDictionary
 from reconstruction.monocular.lifter import LifterConfig, PoseLifter
 from reconstruction.monocular.linalg import complete_rotation
@@ -156,8 +156,8 @@ def _world_frame_start(init: InitResult, T_world_cam: np.ndarray):
 def _placed_like(X: np.ndarray, ref: np.ndarray, limbs) -> np.ndarray:
     """Joints X (T, 17, 3) moved and scaled to the placement of ``ref`` (T, 17, 3): per frame the hip centre of ref,
     one size for the clip (the median ratio of the RMS bone lengths); X's posture and orientation are kept."""
-    a, b = np.array([l[0] for l in limbs]), np.array([l[1] for l in limbs])
-    bones = lambda Y: np.sqrt(np.mean(np.sum((Y[:, a] - Y[:, b]) ** 2, -1), -1))  # noqa: E731
+    a, b = limb_index_arrays(limbs)
+    bones = lambda Y: np.sqrt(squared_limb_lengths(np.swapaxes(Y, 1, 2), a, b).mean(0))  # noqa: E731  (T,) RMS bone
     s = float(np.median(bones(ref) / np.maximum(bones(X), 1e-9)))
     hip = lambda Y: 0.5 * (Y[:, COCO17["left_hip"]] + Y[:, COCO17["right_hip"]])  # noqa: E731
     return hip(ref)[:, None] + s * (X - hip(X)[:, None])
@@ -278,7 +278,7 @@ def reconstruct_monocular(
     if persp is not None and cfg.model.enabled:
         t0 = time.perf_counter()
         t_f = np.asarray(t_ns, dtype=np.int64) if t_ns is not None else np.round(np.arange(T) * dt_s * 1e9).astype(np.int64)
-        fit = lambda X0: model_fit(W_px, conf, np.asarray(T_world_cam, dtype=float), np.asarray(K, dtype=float), t_f, X0, cfg.model)  # noqa: E731
+        fit = lambda X0: model_fit(W_px, conf, T_wc, Kf, t_f, X0, cfg.model)  # noqa: E731
         model, model_start = fit(persp.X), persp_start
         free = cfg.perspective_start == "lowest_objective"  # a named start is an ablation: that start only
         if cfg.model.also_from_lifted and free and "lifted" in runs and persp_start != "lifted":
