@@ -61,7 +61,7 @@ def _name(pid: int) -> str:
         return str(pid)
     if "agent" in argv and "--drone-id" in argv:
         return "agent " + argv[argv.index("--drone-id") + 1]
-    if "skycap.demo" in argv:
+    if "apps.demo" in argv:
         return "simulator node"
     if "--drone-id" in argv:
         return "camera " + argv[argv.index("--drone-id") + 1]
@@ -79,7 +79,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("/tmp/skycap_bench_demo"))
     ap.add_argument("extra", nargs="*", help="more arguments for skycap demo (after --)")
     args = ap.parse_args()
-    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--drones", str(args.drones), "--duration", str(args.duration),
+    cmd = [sys.executable, "-m", "apps.cli", "demo", "--drones", str(args.drones), "--duration", str(args.duration),
            "--out", str(args.out), *args.extra]
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -125,7 +125,7 @@ def main() -> int:
     print(f"{'total':28s} {wall:8.1f} {total:8.1f} {100 * total / wall:7.1f}\n")
     summary = args.out / "summary.json"
     if summary.is_file():
-        from groundstation.summary import format_table
+        from evaluation.flight import format_table
 
         print(format_table(json.loads(summary.read_text())))
     else:

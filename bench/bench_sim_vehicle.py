@@ -82,7 +82,7 @@ async def _main(args) -> None:
     cmd = [
         sys.executable,
         "-m",
-        "skycap.cli",
+        "apps.cli",
         "--log-level",
         "WARNING",
         "sim",

@@ -37,8 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import describe_machine  # noqa: E402
 
-from onboard.recorder import Recorder  # noqa: E402
-from onboard.transport import Transport, TransportConfig, free_tcp_port  # noqa: E402
+from flightdata.recorder import Recorder  # noqa: E402
+from comms.transport import Transport, TransportConfig  # noqa: E402
+from tests.helpers.ports import free_tcp_port
 from shared_msgs import (  # noqa: E402
 
     BoundingBox,
@@ -256,7 +257,7 @@ def bench_recorder(seconds: float) -> list[list[str]]:
 def bench_kill(runs: int) -> list[list[str]]:
     import signal
 
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
 
     lost, counts = [], []
     rng = np.random.default_rng(4)

@@ -47,7 +47,7 @@ def _client(args, heartbeat_hz: float = 2.0):
     import time
 
     from groundstation.fleet import FleetClient
-    from onboard.transport import TransportConfig
+    from comms.transport import TransportConfig
 
     client = FleetClient.open(args.fleet, TransportConfig.local_peer(args.zenoh_connect), heartbeat_hz=heartbeat_hz)
     time.sleep(1.0)  # let Zenoh connect and the presence of the drones arrive

@@ -72,7 +72,7 @@ def make_orbit_plan(
 
 
 class FleetClient:
-    """The ground station's view of and handle on the fleet ``fleet`` over a :class:`~onboard.transport.Transport`."""
+    """The ground station's view of and handle on the fleet ``fleet`` over a :class:`~comms.transport.Transport`."""
 
     def __init__(self, fleet: str, bus, heartbeat_hz: float = 2.0, sender_id: str = keys.GCS):
         self.fleet = fleet
@@ -102,7 +102,7 @@ class FleetClient:
 
     @classmethod
     def open(cls, fleet: str, transport_cfg=None, heartbeat_hz: float = 2.0) -> "FleetClient":
-        from onboard.transport import Transport, TransportConfig
+        from comms.transport import Transport, TransportConfig
 
         bus = Transport.open(transport_cfg or TransportConfig(), node_id="gcs")
         client = cls(fleet, bus, heartbeat_hz)

@@ -1,10 +1,10 @@
 """The onboard agent: one process per drone, on its companion computer.
 
 It connects to its autopilot (:class:`onboard.autopilot.MavsdkAutopilot`, MAVSDK as a companion
-computer), joins the fleet over Zenoh (:class:`onboard.transport.Transport`), takes plans and commands
+computer), joins the fleet over Zenoh (:class:`comms.transport.Transport`), takes plans and commands
 from the ground station and answers each with a :class:`~shared_msgs.CommandAck`, flies its slot of the
 orbit by streaming offboard setpoints, watches the ground-station heartbeat and the battery, and records
-everything it sees to its MCAP file (:mod:`onboard.recorder`).
+everything it sees to its MCAP file (:mod:`flightdata.recorder`).
 
 Parts (so that perception, tracking and formation control plug in without rewrites):
 
@@ -61,13 +61,14 @@ from shared_msgs import (
     stamp_sent,
 )
 from onboard.config import AgentConfig
-from onboard.recorder import channel_name
+from skycap.frames import yaw_from_quat_wxyz
+from flightdata.recorder import channel_name
 from onboard.mission import Action, Mission, State, closest_neighbour, validate_command, validate_plan
 from onboard.orbit import HoldSource, OrbitController, Setpoint, SetpointSource
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Agent", "PerceptionStage", "RateMeter", "yaw_from_q"]
+__all__ = ["Agent", "PerceptionStage", "RateMeter"]
 
 
 class PerceptionStage(Protocol):
@@ -97,12 +98,6 @@ class RateMeter:
         while self._t and self._t[0] < now - self.window_s:
             self._t.popleft()
         return len(self._t) / self.window_s
-
-
-def yaw_from_q(q_wxyz) -> float:
-    """Heading (rad, 0 = north, + = east) of a body FRD -> NED quaternion (w, x, y, z)."""
-    w, x, y, z = q_wxyz
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 class Agent:
@@ -392,7 +387,7 @@ class Agent:
                 elif action == Action.PAUSE:
                     st = self.state
                     if st is not None:
-                        self.source = HoldSource(st.position_ned_m, yaw_from_q(st.q_world_body))
+                        self.source = HoldSource(st.position_ned_m, yaw_from_quat_wxyz(st.q_world_body))
                 elif action in (Action.LAND, Action.RETURN, Action.HOLD):
                     self.source = None
                     await {Action.LAND: ap.land, Action.RETURN: ap.return_to_launch, Action.HOLD: ap.hold}[action]()
@@ -621,7 +616,7 @@ class Agent:
                     # track mode: plan in the filter's frame (own position corrected by the estimated GPS
                     # offset), then back to the autopilot's frame for the setpoint
                     sp = src.update(t_s, np.asarray(st.position_ned_m) - offset, np.asarray(st.velocity_ned_m_s),
-                                    yaw_from_q(st.q_world_body))
+                                    yaw_from_quat_wxyz(st.q_world_body))
                     if formation:
                         self._note_formation(src)
                         sp.position_ned_m = sp.position_ned_m + offset
@@ -765,7 +760,7 @@ class Agent:
         cfg = self.cfg
         loop = asyncio.get_running_loop()
         self._loop = loop
-        from onboard.transport import deliver_to_loop
+        from comms.transport import deliver_to_loop
 
         sub = lambda key, cb, t: self._subs.append(self.bus.subscribe(key, deliver_to_loop(loop, cb), t))
         sub(keys.gcs_key(cfg.fleet, keys.HEALTH), self.on_gcs_health, Health)
@@ -844,7 +839,7 @@ class Agent:
 async def run_agent(cfg: AgentConfig) -> int:
     """Process entry: open the transport and the recorder, run the agent until SIGTERM/SIGINT."""
     from onboard.autopilot import MavsdkAutopilot
-    from onboard.transport import Transport
+    from comms.transport import Transport
 
     cfg.validate()
     stop = asyncio.Event()
@@ -853,22 +848,25 @@ async def run_agent(cfg: AgentConfig) -> int:
         loop.add_signal_handler(sig, stop.set)
     recorder = None
     if cfg.record.enabled:
-        from onboard.recorder import Recorder, drone_log_path
+        from flightdata.folder import Sortie
+        from flightdata.recorder import Recorder
+        from skycap.config import save_config
 
-        recorder = Recorder(drone_log_path(cfg.record.dir, cfg.drone_id), node_id=cfg.drone_id,
-                            metadata={"fleet": cfg.fleet, "connection": cfg.connection})
+        # each start is a new sortie: a new file, so a restart never touches the last recording
+        recorder = Recorder.new_sortie(cfg.record.dir, cfg.drone_id,
+                                       metadata={"fleet": cfg.fleet, "connection": cfg.connection})
+        save_config(cfg, Sortie.of(recorder.path).config_path)
     bus = Transport.open(cfg.transport, node_id=cfg.drone_id)
     origin = (cfg.origin.lat_deg, cfg.origin.lon_deg, cfg.origin.alt_m)
     agent = Agent(cfg, bus, MavsdkAutopilot(cfg.drone_id, origin=origin), recorder)
     try:
         await agent.run(stop)
     finally:
-        if cfg.mode == "track" and cfg.record.enabled:
+        if cfg.mode == "track" and recorder is not None:
             import json
-            from pathlib import Path
 
             try:
-                p = Path(cfg.record.dir) / f"{cfg.drone_id}.track.json"
+                p = Sortie.of(recorder.path).track_stats_path  # this sortie's counters, beside its recording
                 p.write_text(json.dumps(agent.tracking_stats()))
             except Exception as e:
                 log.error("%s: writing the tracking statistics failed: %s", cfg.drone_id, e)

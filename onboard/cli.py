@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--drone-id", default=None, help="this drone's id (drone_1, drone_2 ...)")
     p.add_argument("--fleet", default=None, help="fleet id (the Zenoh key segment shared with the ground station)")
     p.add_argument("--connection", default=None, help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540")
-    p.add_argument("--record-dir", default=None, help="flight folder; the agent writes <dir>/<drone_id>.mcap")
+    p.add_argument("--record-dir", default=None, help="flight folder; each agent start records a new sortie <dir>/<drone_id>.s<NNN>.mcap")
     p.add_argument("--no-record", action="store_true", help="do not record an MCAP file")
     p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--print-config", action="store_true", help="print the resolved configuration (TOML) and exit")
@@ -49,8 +49,4 @@ def _run(args: argparse.Namespace) -> int:
 
         print(tomli_w.dumps(config_to_dict(cfg)))
         return 0
-    if cfg.record.enabled:
-        from skycap.config import save_config
-
-        save_config(cfg, cfg.mcap_path.parent / "logs" / f"{cfg.drone_id}_config.toml")
     return asyncio.run(run_agent(cfg))

@@ -6,9 +6,8 @@ See ``deploy/agent.example.toml`` for a commented example.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
-from onboard.transport import TransportConfig
+from comms.transport import TransportConfig
 from skycap.config import ConfigError
 
 __all__ = ["AgentConfig", "TrackConfig", "FormationFailsafeConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
@@ -214,6 +213,3 @@ class AgentConfig:
             raise ConfigError("safety.min_altitude_m must be > 0 and below safety.max_altitude_m")
         return self
 
-    @property
-    def mcap_path(self) -> Path:
-        return Path(self.record.dir) / f"{self.drone_id}.mcap"

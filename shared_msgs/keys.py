@@ -31,8 +31,8 @@ Latest values: ``gcs/plan`` (and anything published with ``Transport.publish(...
 served to queries (``Transport.query_latest``), so a node that starts late gets the current plan.
 
 How processes find each other (default: every process a Zenoh peer, multicast scouting off, joining the
-rendezvous peer on ``tcp/127.0.0.1:7447`` that the simulator / launcher opens): see :mod:`onboard.transport`.
-The recorder's MCAP channel of a key is :func:`onboard.recorder.channel_name`.
+rendezvous peer on ``tcp/127.0.0.1:7447`` that the simulator / launcher opens): see :mod:`comms.transport`.
+The recorder's MCAP channel of a key is :func:`flightdata.recorder.channel_name`.
 """
 
 from __future__ import annotations

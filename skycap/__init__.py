@@ -1,6 +1,7 @@
 """skycap: markerless human motion capture from a fleet of autonomous camera drones.
 
-This package holds what every part shares: the command-line tool (:mod:`skycap.cli`), typed
+This package is the base layer that every part shares and that imports no other part: errors
+(:mod:`skycap.errors`), logging set-up (:mod:`skycap.logsetup`), typed
 configuration (:mod:`skycap.config`), frames and rotations (:mod:`skycap.frames`), the BVH reader and
 writer (:mod:`skycap.bvh`) and the body skeleton conventions (:mod:`skycap.skeleton`).
 """

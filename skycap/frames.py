@@ -18,6 +18,8 @@ Conventions used across skycap (say them once, convert here):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -149,3 +151,54 @@ def ned_to_geodetic(ned_m, origin_lat_deg: float, origin_lon_deg: float, origin_
 def wrap_angle_rad(a):
     """Wrap to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+# ------------------------------------------------------------- quaternions (w, x, y, z), no scipy (hot paths)
+def yaw_from_R(R: np.ndarray) -> float:
+    """Heading (rad, 0 = north, + = east) of a body FRD -> NED rotation matrix."""
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def euler_from_R(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) rad of R_world_body (ZYX), without scipy (hot path)."""
+    return (
+        math.atan2(R[2, 1], R[2, 2]),
+        -math.asin(max(-1.0, min(1.0, R[2, 0]))),
+        math.atan2(R[1, 0], R[0, 0]),
+    )
+
+
+def quat_wxyz_from_R(R: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        return 0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s
+    if R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
+        return (R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s
+    if R[1, 1] > R[2, 2]:
+        s = math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
+        return (R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s
+    s = math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
+    return (R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s
+
+
+def R_from_quat_wxyz(q) -> np.ndarray:
+    """Body FRD -> NED rotation from a (w, x, y, z) quaternion (the messages' order), normalised first."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def yaw_from_quat_wxyz(q_wxyz) -> float:
+    """Heading (rad, 0 = north, + = east) of a body FRD -> NED quaternion (w, x, y, z)."""
+    w, x, y, z = q_wxyz
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))

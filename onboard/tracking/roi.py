@@ -112,3 +112,12 @@ def plan_detection(
     if roi[2] * roi[3] > config.max_area_frac * intrinsics.width_px * intrinsics.height_px:
         return DetectorPlan("tiles", None, False, "predicted region too large for an ROI")
     return DetectorPlan("roi", roi, False, "tracking")
+
+
+def box_in_roi(box_xyxy, roi_xywh, tol_px: float = 1.0) -> bool:
+    """Whether the box (x0, y0, x1, y1) lies inside the ROI (x, y, w, h), within tol_px."""
+    x, y, w, h = roi_xywh
+    if w <= 0 or h <= 0:
+        return False
+    return (box_xyxy[0] >= x - tol_px and box_xyxy[1] >= y - tol_px and box_xyxy[2] <= x + w + tol_px
+            and box_xyxy[3] <= y + h + tol_px)

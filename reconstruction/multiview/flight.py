@@ -1,8 +1,8 @@
 """Flight folders from the onboard recorder -> :class:`reconstruction.capture.Capture`, and
 ``skycap reconstruct FLIGHT_DIR`` for the multiview method.
 
-A flight folder holds one MCAP per drone, ``drone_<i>.mcap`` (:mod:`onboard.recorder`; messages of
-:mod:`shared_msgs.messages`, read with :mod:`onboard.flightlog`). Topics used per drone:
+A flight folder holds one MCAP per drone, ``drone_<i>.mcap`` (:mod:`flightdata.recorder`; messages of
+:mod:`shared_msgs.messages`, read with :mod:`flightdata.flightlog`). Topics used per drone:
 
 * ``state`` (:class:`VehicleState`): the drone's own pose estimate at ``header.t_measurement_ns``,
   with diagonal position/attitude covariances -> camera pose uncertainty;
@@ -49,7 +49,7 @@ def read_drone_log(path: str | Path, gimbal_stabilised: bool = True,
     position_offset: optional (t_ns (N,), offset_ned_m (N, 3)) subtracted from the reported positions
     (interpolated, held at the ends): the offline smoother's estimate of the drone's GPS offset.
     """
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
     from shared_msgs.messages import CameraInfo, Keypoints2D, VehicleState
 
     path = Path(path)

@@ -60,7 +60,7 @@ def reconstruct_with_refined_poses(flight_dir: Path) -> dict:
     """Multiview reconstruction with the refined drone positions into ``reconstruction_refined/``; MPJPE of it
     and of the plain ``reconstruction/`` (when present) against the simulator truth; added to
     ``refined_track.json`` under ``reconstruction``."""
-    from groundstation.summary import reconstruction_accuracy
+    from evaluation.flight import reconstruction_accuracy
     from reconstruction.multiview.flight import reconstruct_flight_dir
     from reconstruction.track.flight import REFINED_JSON
 

@@ -1,6 +1,6 @@
 """Flight folder -> the offline smoother -> ``refined_track.npz`` + ``refined_track.json`` (``skycap refine``).
 
-Reads every ``drone_<i>.mcap`` of a flight folder (:mod:`onboard.flightlog`):
+Reads every ``drone_<i>.mcap`` of a flight folder (:mod:`flightdata.flightlog`):
 
 * the drone's own person detections: topic ``detections`` (what the tracking stage shared, with the camera
   pose covariance filled in) or, on flights without the tracking stage (orbit mode), ``sim/detections``
@@ -78,7 +78,7 @@ def _drone_files(flight_dir: Path) -> list[Path]:
 
 def read_recordings(flight_dir: str | Path) -> list[DroneRecording]:
     """Every drone of a flight folder -> :class:`DroneRecording` (drones without detections are left out)."""
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
     from onboard.tracking.measurement import CameraIntrinsics
     from shared_msgs.messages import CameraInfo, Command, Detections, Keypoints2D, TargetEstimate, VehicleState
 
@@ -324,7 +324,7 @@ def load_refined_offsets(flight_dir: str | Path) -> dict[str, tuple[np.ndarray, 
 # ------------------------------------------------------------------------------------------------ evaluation
 def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns (T,), person root (T, 3), drone positions (T, D, 3)) from the simulator truth."""
-    from groundstation.summary import read_sim_truth
+    from flightdata.folder import read_sim_truth
 
     ts, person, veh, _ = read_sim_truth(path, drone_ids)
     if len(ts) < 2:
@@ -344,7 +344,7 @@ def _rms3(e: np.ndarray) -> float:
 
 def _window_ns(flight_dir: Path, recs: list[DroneRecording], t_truth_end: int, settle_s: float) -> tuple[int, int]:
     """Steady window as the flight summary uses it: plan start + settle_s to the first land command."""
-    from groundstation.summary import load_plan
+    from flightdata.folder import load_plan
 
     plan_p = flight_dir / "plan.json"
     t0 = None
@@ -372,7 +372,7 @@ def evaluate(flight_dir: str | Path, track: SmoothedTrack, recs: list[DroneRecor
       the live one (``roi_px`` of the shared detections, track mode), and the IoU of the smoothed person box
       with the true box.
     """
-    from groundstation.summary import box_in_roi
+    from onboard.tracking.roi import box_in_roi
 
     flight_dir = Path(flight_dir)
     ids = track.drone_ids
@@ -382,7 +382,7 @@ def evaluate(flight_dir: str | Path, track: SmoothedTrack, recs: list[DroneRecor
     if t1 <= t0:
         raise SmootherError(f"{flight_dir}: no steady window (plan start + {settle_s} s to the land command)")
 
-    # common bias (reported positions), as groundstation.summary defines it
+    # common bias (reported positions), as evaluation.flight defines it
     rep_err, ref_err = [], []
     drones = {}
     for di, d in enumerate(ids):

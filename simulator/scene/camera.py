@@ -15,16 +15,15 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from simulator.scene.body import PARTS, Ellipsoids, body_ellipsoids
 
 PART_INDEX = {name: i for i, (name, _) in enumerate(PARTS)}
 from simulator.scene.config import CameraConfig
-from skycap.frames import T_world_cam_from_pose, invert_T
+from skycap.frames import R_from_quat_wxyz, T_world_cam_from_pose, invert_T
 
 __all__ = [
-    "PinholeCamera", "camera_pose", "R_world_body_from_q", "GtProjection", "project_person", "ellipsoid_boxes",
+    "PinholeCamera", "camera_pose", "GtProjection", "project_person", "ellipsoid_boxes",
     "joint_occlusion",
 ]  # fmt: skip
 
@@ -76,12 +75,6 @@ class PinholeCamera:
         return (uv[..., 0] >= 0) & (uv[..., 0] < self.width_px) & (uv[..., 1] >= 0) & (uv[..., 1] < self.height_px)
 
 
-def R_world_body_from_q(q_wxyz) -> np.ndarray:
-    """Body FRD -> NED rotation from a (w, x, y, z) quaternion (the messages' order)."""
-    w, x, y, z = (float(v) for v in q_wxyz)
-    return Rotation.from_quat([x, y, z, w]).as_matrix()
-
-
 def camera_pose(
     cfg: CameraConfig,
     position_ned_m,
@@ -94,7 +87,7 @@ def camera_pose(
     (from the vehicle truth) or ``cfg.pitch_deg`` when None. Fixed mount: the camera turns with the body,
     pitched by ``cfg.pitch_deg`` relative to it. The lever arm turns with the body in both cases.
     """
-    R_wb = R_world_body_from_q(q_world_body_wxyz)
+    R_wb = R_from_quat_wxyz(q_world_body_wxyz)
     lever = np.asarray(cfg.lever_arm_body_m, dtype=float)
     if cfg.mount == "gimbal":
         yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])

@@ -81,7 +81,7 @@ class ZenohCameraAdapter:
 
 
 def run_camera_node(cfg: SceneConfig, fleet: str, drone_id: str, bus, stop: threading.Event) -> CameraNode:
-    """Run one drone's camera on an open :class:`onboard.transport.Transport` until ``stop`` is set."""
+    """Run one drone's camera on an open :class:`comms.transport.Transport` until ``stop`` is set."""
     adapter = ZenohCameraAdapter(bus, fleet, drone_id)
     node = CameraNode(drone_id, cfg, adapter.truth, adapter.publish)
     log.info(
@@ -106,7 +106,7 @@ def add_node_args(p: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    from onboard.transport import DEFAULT_RENDEZVOUS, Transport, TransportConfig
+    from comms.transport import DEFAULT_RENDEZVOUS, Transport, TransportConfig
     from skycap.config import load_config
 
     import cv2
@@ -125,7 +125,7 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from skycap.cli import setup_logging
+    from skycap.logsetup import setup_logging
 
     ap = argparse.ArgumentParser(prog="python -m simulator.scene.node", description=__doc__.splitlines()[0])
     add_node_args(ap)

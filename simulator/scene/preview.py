@@ -130,7 +130,7 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from skycap.cli import setup_logging
+    from skycap.logsetup import setup_logging
 
     ap = argparse.ArgumentParser(prog="python -m simulator.scene.preview", description=__doc__.splitlines()[0])
     add_args(ap)

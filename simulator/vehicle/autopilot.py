@@ -24,7 +24,7 @@ from simulator.vehicle.dynamics import GRAVITY_M_S2, DynamicsLimits, MultirotorD
 from simulator.vehicle.environment import Battery, EstimatorErrorModel
 from simulator.vehicle.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, ParamStore
 from simulator.vehicle.px4_modes import MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, FlightMode, flight_mode_from_px4
-from skycap.frames import ned_to_geodetic
+from skycap.frames import ned_to_geodetic, yaw_from_R
 
 log = logging.getLogger(__name__)
 
@@ -62,48 +62,6 @@ class VehicleTruth:
     est_position_ned_m: np.ndarray | None = None
     est_R_world_body: np.ndarray | None = None
     battery_percent: float = 100.0
-
-
-def yaw_from_R(R: np.ndarray) -> float:
-    return math.atan2(R[1, 0], R[0, 0])
-
-
-def euler_from_R(R: np.ndarray) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) rad of R_world_body (ZYX), without scipy (hot path)."""
-    return (
-        math.atan2(R[2, 1], R[2, 2]),
-        -math.asin(max(-1.0, min(1.0, R[2, 0]))),
-        math.atan2(R[1, 0], R[0, 0]),
-    )
-
-
-def quat_wxyz_from_R(R: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    if tr > 0:
-        s = math.sqrt(tr + 1.0) * 2
-        return 0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s
-    if R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
-        return (R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s
-    if R[1, 1] > R[2, 2]:
-        s = math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
-        return (R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s
-    s = math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
-    return (R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s
-
-
-def R_from_quat_wxyz(q) -> np.ndarray:
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def default_params(cfg: SimConfig, system_id: int) -> list[Param]:

@@ -26,7 +26,8 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from simulator.config import RatesConfig
 from simulator.vehicle import autopilot as ap
-from simulator.vehicle.autopilot import R_from_quat_wxyz, SimVehicle, euler_from_R, quat_wxyz_from_R, yaw_from_R
+from simulator.vehicle.autopilot import SimVehicle
+from skycap.frames import R_from_quat_wxyz, euler_from_R, quat_wxyz_from_R, yaw_from_R
 from simulator.vehicle.controller import Setpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2
 from simulator.vehicle.params import decode_param_value, encode_param_value

@@ -1,5 +1,5 @@
 """Fixtures that start real pieces: the built-in simulator (in a thread), a Zenoh rendezvous, the fleet
-client, and agent processes (``python -m skycap.cli agent``), all on non-default ports."""
+client, and agent processes (``python -m apps.cli agent``), all on non-default ports."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.transport import free_udp_base
+from tests.helpers.ports import free_udp_base
 
 
 class Flight:
@@ -21,7 +21,8 @@ class Flight:
 
     def __init__(self, tmp: Path, n: int = 1, sim_overrides: list[str] | None = None):
         from groundstation.fleet import FleetClient
-        from onboard.transport import Transport, TransportConfig, free_tcp_port
+        from comms.transport import Transport, TransportConfig
+        from tests.helpers.ports import free_tcp_port
         from simulator.config import SimConfig
         from simulator.runner import SimWorld
         from skycap.config import load_config
@@ -42,7 +43,7 @@ class Flight:
     def start_agent(self, i: int, *extra: str) -> subprocess.Popen:
         drone = f"drone_{i + 1}"
         log = open(self.tmp / f"{drone}.log", "w")
-        cmd = [sys.executable, "-m", "skycap.cli", "agent", "--drone-id", drone, "--fleet", self.fleet_id,
+        cmd = [sys.executable, "-m", "apps.cli", "agent", "--drone-id", drone, "--fleet", self.fleet_id,
                "--connection", f"udpin://0.0.0.0:{self.base + i}", "--record-dir", str(self.tmp),
                "--zenoh-connect", self.endpoint, *extra]
         p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)

@@ -81,7 +81,7 @@ def test_agent_flies_orbit_refuses_bad_input_and_lands(flight):
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(15) == 0, fl.log("drone_1")
 
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
 
     log = FlightLog(fl.tmp / "drone_1.mcap")
     assert log.finalised

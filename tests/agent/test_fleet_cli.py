@@ -11,7 +11,7 @@ pytestmark = pytest.mark.slow
 
 
 def _fleet(fl, *args: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "skycap.cli", "fleet", "--fleet", fl.fleet_id, "--zenoh-connect", fl.endpoint, *args]
+    cmd = [sys.executable, "-m", "apps.cli", "fleet", "--fleet", fl.fleet_id, "--zenoh-connect", fl.endpoint, *args]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
 
 

@@ -8,7 +8,9 @@ import time
 
 import pytest
 
-from onboard.transport import FaultConfig, Transport, TransportConfig, TransportError, free_tcp_port
+from comms.faults import FaultConfig
+from comms.transport import Transport, TransportConfig, TransportError
+from tests.helpers.ports import free_tcp_port
 from shared_msgs import VehicleState, keys
 from skycap.config import load_config
 

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from onboard.transport import free_tcp_port, free_udp_base
+from tests.helpers.ports import free_tcp_port, free_udp_base
 
 
 pytestmark = pytest.mark.slow
@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow
 
 def test_short_demo_produces_a_sane_summary(tmp_path):
     out = tmp_path / "flight"
-    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--drones", "2", "--duration", "20", "--out", str(out),
+    cmd = [sys.executable, "-m", "apps.cli", "demo", "--drones", "2", "--duration", "20", "--out", str(out),
            "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"", "--set", f"mavlink_base={free_udp_base(2)}",
            "--set", "fleet=\"demotest\"", "--set", "reconstruct=false"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=240)

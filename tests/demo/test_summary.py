@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from groundstation.fleet import make_orbit_plan
-from groundstation.summary import min_pairwise_distance_m, orbit_errors
+from evaluation.flight import min_pairwise_distance_m, orbit_errors
 from onboard.orbit import slot_state
 
 
@@ -56,7 +56,7 @@ def test_min_pairwise_distance():
 
 
 def test_yaw_to_center_error():
-    from groundstation.summary import yaw_to_center_error_deg_rms
+    from evaluation.flight import yaw_to_center_error_deg_rms
 
     pos = np.array([[10.0, 0.0, -5.0], [0.0, 10.0, -5.0]])
     assert yaw_to_center_error_deg_rms((0, 0, 0), pos, np.array([math.pi, -math.pi / 2])) == pytest.approx(0.0, abs=1e-9)
@@ -68,8 +68,8 @@ def test_reconstruction_accuracy_against_truth(tmp_path):
     """A reconstruction offset by 10 cm from the truth scores MPJPE 100 mm and PA-MPJPE 0; the window selects."""
     import numpy as np
 
-    from groundstation.summary import reconstruction_accuracy
-    from onboard.recorder import Recorder, truth_log_path
+    from evaluation.flight import reconstruction_accuracy
+    from flightdata.recorder import Recorder, truth_log_path
     from shared_msgs import SimTruth
 
     rng = np.random.default_rng(0)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from skycap.cli import main
+from apps.cli import main
 
 
 @pytest.fixture(scope="module")

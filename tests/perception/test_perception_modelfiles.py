@@ -91,7 +91,7 @@ def test_cli_reports_a_corrupt_model_in_one_line(tmp_path) -> None:
     cv2.imwrite(str(img), np.zeros((64, 64, 3), np.uint8))
     env = {**__import__("os").environ, "SKYCAP_MODELS_DIR": str(tmp_path)}
     res = subprocess.run(
-        [sys.executable, "-m", "skycap.cli", "detect", str(img), "--mode", "full"],
+        [sys.executable, "-m", "apps.cli", "detect", str(img), "--mode", "full"],
         capture_output=True,
         text=True,
         env=env,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from reconstruction.dictionary.learn_dictionary import EVAL_CLIPS
-from skycap.cli import main
+from apps.cli import main
 
 
 @pytest.mark.shared_data

@@ -53,7 +53,7 @@ def test_reconstruct_capture_rejects_unknown_camera(tmp_path):
 def _write_orbit_flight(tmp_path, J, t_ns, radius_m=4.0, omega_deg_s=40.0, noise_px=2.0):
     """One drone orbiting the person, recorded with the real flight recorder (MCAP): state, camera_info
     (gimbal pitch aimed at the hips) and noisy simulated keypoints."""
-    from onboard.recorder import Recorder, drone_log_path
+    from flightdata.recorder import Recorder, drone_log_path
     from shared_msgs.messages import CameraInfo, Header, Keypoints2D, PersonKeypoints, VehicleState
     from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose, intrinsics_matrix, project_points
 
@@ -85,7 +85,7 @@ def _write_orbit_flight(tmp_path, J, t_ns, radius_m=4.0, omega_deg_s=40.0, noise
 def test_reconstruct_cli_on_a_recorded_single_drone_flight(tmp_path):
     pytest.importorskip("mcap")
     from reconstruction.synth import procedural_walker
-    from skycap.cli import main
+    from apps.cli import main
 
     J, t_ns, *_ = procedural_walker(96, fps=24.0)
     _write_orbit_flight(tmp_path, J, t_ns)

@@ -72,7 +72,7 @@ def test_paper_fit_runs_per_frame(walker_capture):
 
 def _write_flight(tmp_path, J, t_ns):
     """Three hovering drones looking at the walker, recorded with the real flight recorder (MCAP)."""
-    from onboard.recorder import Recorder, drone_log_path
+    from flightdata.recorder import Recorder, drone_log_path
     from shared_msgs.messages import CameraInfo, Header, Keypoints2D, PersonKeypoints, VehicleState
 
     K = intrinsics_matrix(1200.0, 1200.0, 640.0, 360.0)
@@ -106,7 +106,7 @@ def _write_flight(tmp_path, J, t_ns):
 def test_flight_reader_and_reconstruct_cli(tmp_path):
     pytest.importorskip("mcap")
     from reconstruction.multiview.flight import read_flight
-    from skycap.cli import main
+    from apps.cli import main
 
     J, t_ns, *_ = procedural_walker(24)
     truth, K = _write_flight(tmp_path, J, t_ns)
@@ -132,7 +132,7 @@ def test_flight_reader_and_reconstruct_cli(tmp_path):
 
 
 def test_eval_multiview_cli(tmp_path, cmu_dir):
-    from skycap.cli import main
+    from apps.cli import main
 
     out = tmp_path / "ev"
     rc = main(["eval", "multiview", "--motion", str(cmu_dir / "002" / "002_01.bvh"), "--out", str(out), "--frames", "24",

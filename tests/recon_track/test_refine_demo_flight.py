@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from onboard.transport import free_tcp_port, free_udp_base
+from tests.helpers.ports import free_tcp_port, free_udp_base
 
 pytestmark = pytest.mark.slow
 
@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="session")
 def track_flight(tmp_path_factory):
     out = tmp_path_factory.mktemp("refine_demo") / "track"
-    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--mode", "track", "--drones", "2", "--duration", "18",
+    cmd = [sys.executable, "-m", "apps.cli", "demo", "--mode", "track", "--drones", "2", "--duration", "18",
            "--out", str(out), "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"",
            "--set", f"mavlink_base={free_udp_base(2)}", "--set", "fleet=\"refinetest\"", "--set", "reconstruct=false"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
@@ -27,7 +27,7 @@ def track_flight(tmp_path_factory):
 
 
 def test_refine_a_recorded_track_flight(track_flight):
-    from skycap.cli import main
+    from apps.cli import main
 
     assert main(["refine", str(track_flight)]) == 0
     s = json.loads((track_flight / "refined_track.json").read_text())

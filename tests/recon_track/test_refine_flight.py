@@ -19,7 +19,7 @@ def _q_yaw(T):
 
 
 def _write_flight(folder, scene):
-    from onboard.recorder import Recorder, drone_log_path, truth_log_path
+    from flightdata.recorder import Recorder, drone_log_path, truth_log_path
     from shared_msgs.messages import (BoundingBox, CameraInfo, Detections, Header, Keypoints2D, PersonKeypoints,
                                       SimTruth, VehicleState, VehicleTruth)
 
@@ -80,7 +80,7 @@ def flight(tmp_path_factory):
 
 
 def test_refine_cli_writes_refined_track_and_evaluates(flight, capsys):
-    from skycap.cli import main
+    from apps.cli import main
 
     folder, scene, ids = flight
     assert main(["refine", str(folder), "--person-height-m", "1.69"]) == 0

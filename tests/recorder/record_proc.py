@@ -12,7 +12,7 @@ import os
 import sys
 import time
 
-from onboard.recorder import Recorder
+from flightdata.recorder import Recorder
 from shared_msgs import CameraFrame, Health, VehicleState
 
 

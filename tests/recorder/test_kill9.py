@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import NonSeekingReader, make_reader
 
-from onboard.flightlog import FlightLog, recover
-from onboard.recorder import Recorder
+from flightdata.flightlog import FlightLog, recover
+from flightdata.recorder import Recorder
 from shared_msgs import CameraFrame, VehicleState
 
 HERE = Path(__file__).resolve().parent

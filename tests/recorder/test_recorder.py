@@ -10,8 +10,8 @@ import msgspec
 import pytest
 from mcap.reader import make_reader
 
-from onboard.flightlog import FlightLog, FlightLogError, read_topic
-from onboard.recorder import Recorder, RecorderError, channel_name, drone_log_path, truth_log_path
+from flightdata.flightlog import FlightLog, FlightLogError, read_topic
+from flightdata.recorder import Recorder, RecorderError, channel_name, drone_log_path, truth_log_path
 from shared_msgs import Command, Health, SimTruth, VehicleState, VehicleTruth, encode
 from shared_msgs.messages import Header
 
@@ -137,7 +137,7 @@ def test_undecodable_message_names_file_and_topic(tmp_path) -> None:
 def test_log_cli_info_and_recover(tmp_path, capsys) -> None:
     import argparse
 
-    from onboard import flightlog
+    from flightdata import flightlog
 
     path = tmp_path / "drone_1.mcap"
     with Recorder(path, node_id="drone_1") as rec:

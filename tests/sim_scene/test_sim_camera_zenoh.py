@@ -14,7 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from onboard.transport import Transport, TransportConfig, free_tcp_port
+from comms.transport import Transport, TransportConfig
+from tests.helpers.ports import free_tcp_port
 from shared_msgs import keys
 from shared_msgs.messages import CameraFrame, CameraInfo, Keypoints2D, SimTruth, VehicleState, VehicleTruth
 from simulator.scene.person import PersonSim

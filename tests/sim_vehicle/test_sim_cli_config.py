@@ -49,7 +49,7 @@ def test_skycap_sim_process_streams_mavlink_and_stops_on_sigterm(tmp_path):
         [
             sys.executable,
             "-m",
-            "skycap.cli",
+            "apps.cli",
             "sim",
             "--drones",
             "1",

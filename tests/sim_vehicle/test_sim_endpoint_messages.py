@@ -11,10 +11,10 @@ from pymavlink.dialects.v20 import common as mavlink
 from sim_vehicle_helpers import fast_forward
 
 from simulator.config import RatesConfig, SimConfig
-from simulator.vehicle import autopilot as ap
 from simulator.vehicle.autopilot import SimVehicle
 from simulator.vehicle.mavlink_endpoint import MavlinkEndpoint
 from simulator.vehicle.px4_modes import FlightMode, MainMode
+from skycap import frames
 from skycap.frames import ned_to_geodetic
 
 M = mavlink
@@ -95,7 +95,7 @@ def test_attitude_target_tilts_and_accelerates_the_vehicle():
     q = [math.cos(roll / 2), math.sin(roll / 2), 0.0, 0.0]  # 10 deg right roll, heading north
     mask = 0b0000_0111  # body rates ignored
     r.offboard(lambda: r.client.set_attitude_target_encode(0, 1, 1, mask, q, 0, 0, 0, 0.52), 2.0)
-    roll_now, _, _ = ap.euler_from_R(r.v.truth.R_world_body)
+    roll_now, _, _ = frames.euler_from_R(r.v.truth.R_world_body)
     assert math.degrees(roll_now) == pytest.approx(10.0, abs=0.5)
     assert r.v.truth.velocity_ned_m_s[1] > 2.0  # rolled right -> accelerates east
 

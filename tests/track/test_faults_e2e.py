@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from onboard.transport import free_tcp_port, free_udp_base
+from tests.helpers.ports import free_tcp_port, free_udp_base
 
 pytestmark = pytest.mark.slow
 
@@ -31,7 +31,7 @@ LOST_MAX_S = 5.0
 
 def _fly(tmp_path_factory, name: str, drones: int, duration_s: float, *sets: str) -> tuple[Path, dict, str]:
     out = tmp_path_factory.mktemp(name) / "flight"
-    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--mode", "track", "--drones", str(drones), "--duration",
+    cmd = [sys.executable, "-m", "apps.cli", "demo", "--mode", "track", "--drones", str(drones), "--duration",
            str(duration_s), "--out", str(out), "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"",
            "--set", f"mavlink_base={free_udp_base(drones)}", "--set", f"fleet=\"fault{name}\"", "--set", "reconstruct=false"]
     for s in sets:

@@ -11,14 +11,14 @@ import sys
 import numpy as np
 import pytest
 
-from onboard.transport import free_tcp_port, free_udp_base
+from tests.helpers.ports import free_tcp_port, free_udp_base
 
 pytestmark = pytest.mark.slow
 
 
 def test_short_track_demo_follows_the_person(tmp_path):
     out = tmp_path / "track"
-    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--mode", "track", "--drones", "2", "--duration", "22",
+    cmd = [sys.executable, "-m", "apps.cli", "demo", "--mode", "track", "--drones", "2", "--duration", "22",
            "--out", str(out), "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"",
            "--set", f"mavlink_base={free_udp_base(2)}", "--set", "fleet=\"tracktest\"", "--set", "reconstruct=false"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
@@ -48,7 +48,7 @@ def test_short_track_demo_follows_the_person(tmp_path):
     assert f["tracking_lost_s"] < 5.0, f
     assert "tgt_rmse_m" in r.stdout  # the printed tracking table
     # the shared detections carry the sender's take-off ground in its reported frame (true ground 0 + its height bias)
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
 
     dets = [m.msg for m in FlightLog(out / "drone_1.mcap").messages(["detections"])]
     grounds = [d.ground_down_m for d in dets]
@@ -63,7 +63,7 @@ def test_short_track_demo_with_the_real_detector(tmp_path):
     """The same flight with the ONNX person detector (NanoDet) on the rendered frames in the predicted ROI
     instead of the simulator's box detector: the drones still find and follow the person."""
     out = tmp_path / "track_onnx"
-    cmd = [sys.executable, "-m", "skycap.cli", "demo", "--mode", "track", "--drones", "2", "--duration", "22",
+    cmd = [sys.executable, "-m", "apps.cli", "demo", "--mode", "track", "--drones", "2", "--duration", "22",
            "--out", str(out), "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"",
            "--set", f"mavlink_base={free_udp_base(2)}", "--set", "fleet=\"trackonnx\"", "--set", "reconstruct=false",
            "--set", "track.detections=\"onnx\""]

@@ -12,7 +12,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tracking"))
 from tracking_scene import camera_info, detections_message, person_center  # noqa: E402
 
-from groundstation.summary import box_in_roi, lost_time_s
+from evaluation.flight import lost_time_s
+from onboard.tracking.roi import box_in_roi
 from onboard.tracking.stage import TrackingStage
 
 

@@ -5,8 +5,8 @@
 
 import sys
 
-from onboard.recorder import Recorder
-from onboard.transport import Transport, TransportConfig
+from flightdata.recorder import Recorder
+from comms.transport import Transport, TransportConfig
 from shared_msgs import Health, keys
 
 bus = Transport.open(TransportConfig.rendezvous(sys.argv[1]), "leaky")

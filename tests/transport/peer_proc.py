@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 
-from onboard.transport import Transport, TransportConfig
+from comms.transport import Transport, TransportConfig
 from shared_msgs import Command, CommandAck, Health, VehicleState, keys
 
 

@@ -7,7 +7,8 @@ import time
 
 import pytest
 
-from onboard.transport import Transport, TransportConfig, TransportError, free_tcp_port
+from comms.transport import Transport, TransportConfig, TransportError
+from tests.helpers.ports import free_tcp_port
 from shared_msgs import OrbitPlan, VehicleState, keys
 from skycap.config import load_config
 
@@ -176,7 +177,7 @@ def test_process_exits_without_close(tmp_path) -> None:
     import sys
     from pathlib import Path
 
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
 
     here = Path(__file__).resolve().parent
     env = dict(os.environ, PYTHONPATH=str(here.parents[1]) + os.pathsep + os.environ.get("PYTHONPATH", ""))

@@ -17,7 +17,8 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from onboard.transport import Transport, TransportConfig, free_tcp_port
+from comms.transport import Transport, TransportConfig
+from tests.helpers.ports import free_tcp_port
 from shared_msgs import Command, CommandAck, Health, VehicleState, encode, keys
 
 HERE = Path(__file__).resolve().parent

@@ -1,6 +1,6 @@
 """Thin adapter over Zenoh (eclipse-zenoh 1.x) that speaks skycap messages.
 
-    from onboard.transport import Transport, TransportConfig
+    from comms.transport import Transport, TransportConfig
     from shared_msgs import keys, VehicleState
 
     with Transport.open(TransportConfig(), node_id="drone_1") as bus:      # peer, connects to the rendezvous
@@ -24,7 +24,7 @@ Router-less, no ``zenohd``: every process is a Zenoh **peer** with multicast sco
 
 On real drones, set ``listen``/``connect`` to the radio network's addresses (or ``mode = "client"`` with
 ``connect`` = a router) from the config file; the code does not change. Tests always use explicit
-``tcp/127.0.0.1:<free port>`` endpoints with multicast scouting off (:func:`free_tcp_port`).
+``tcp/127.0.0.1:<free port>`` endpoints with multicast scouting off (``tests/helpers/ports.py``).
 
 Threading
 ---------
@@ -55,7 +55,8 @@ import zenoh
 from shared_msgs import keys as _keys
 from shared_msgs.codec import MessageError, decode, encode, stamp_sent, validate
 from shared_msgs.messages import Message, now_ns
-from skycap.errors import SkycapError
+from comms.errors import TransportError
+from comms.faults import FaultConfig, FaultInjector
 
 __all__ = [
     "DEFAULT_RENDEZVOUS",
@@ -68,7 +69,6 @@ __all__ = [
     "AsyncSubscription",
     "TopicStats",
     "deliver_to_loop",
-    "free_tcp_port",
 ]
 
 log = logging.getLogger(__name__)
@@ -84,41 +84,6 @@ _BLOCKING_TOPICS = frozenset({_keys.CMD, _keys.ACK, _keys.PLAN})
 _LOW_PRIORITY_TOPICS = frozenset({_keys.CAMERA_IMAGE})
 
 _MSGPACK_ENCODING = "application/msgpack;skycap"
-
-
-class TransportError(SkycapError):
-    """The Zenoh session could not be opened or used (bad endpoint, port in use, closed transport)."""
-
-
-@dataclass
-class FaultConfig:
-    """Simulated network faults on RECEIVE -- a chaos/simulation option for fault tests; leave it off (the
-    defaults) on real drones.
-
-    Applies to messages this node receives on **other drones'** keys (``skycap/v1/<fleet>/<drone>/<topic>``
-    with ``<drone>`` not this node; ground-station, simulator and the node's own keys are never touched)
-    whose topic is listed: each such message is dropped with probability ``drop_prob`` (topics
-    ``drop_topics``) and delivered ``delay_s`` seconds late (topics ``delay_topics``; the
-    :class:`Received` then carries the late delivery time). Counted per subscription in
-    ``TopicStats.fault_dropped`` / ``fault_delayed``. ``seed`` makes the drop sequence reproducible.
-    """
-
-    drop_prob: float = 0.0
-    drop_topics: list[str] = field(default_factory=lambda: [_keys.STATE, _keys.DETECTIONS, _keys.FORMATION_PLAN,
-                                                            _keys.TARGET, _keys.HEALTH])
-    delay_s: float = 0.0
-    delay_topics: list[str] = field(default_factory=lambda: [_keys.DETECTIONS])
-    seed: int = 0
-
-    @property
-    def active(self) -> bool:
-        return self.drop_prob > 0.0 or self.delay_s > 0.0
-
-    def validate(self) -> None:
-        if not 0.0 <= self.drop_prob <= 1.0:
-            raise TransportError(f"transport.fault.drop_prob={self.drop_prob} must be within 0..1 (0 = off)")
-        if not 0.0 <= self.delay_s <= 60.0:
-            raise TransportError(f"transport.fault.delay_s={self.delay_s} must be within 0..60 s (0 = off)")
 
 
 @dataclass
@@ -336,34 +301,6 @@ def deliver_to_loop(loop: asyncio.AbstractEventLoop, callback: Callable[..., Any
     return wrapper
 
 
-def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that is free right now on ``host`` (for tests and launchers choosing endpoints)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
-def free_udp_base(n: int, lo: int = 30000, hi: int = 60000) -> int:
-    """A base port with ``n`` consecutive UDP ports free right now (for launchers and tests: MAVLink base+i)."""
-    import random
-
-    for _ in range(200):
-        base = random.randint(lo, hi - n)
-        socks = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                s.bind(("0.0.0.0", base + i))
-                socks.append(s)
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError(f"no {n} consecutive free UDP ports in {lo}..{hi}")
-
-
 class _RateLimitedLog:
     """Log the first ``first`` events per key, then every ``every``-th."""
 
@@ -372,92 +309,6 @@ class _RateLimitedLog:
 
     def should_log(self, count: int) -> bool:
         return count <= self.first or count % self.every == 0
-
-
-class _FaultInjector:
-    """The receive-side fault layer of one transport (see :class:`FaultConfig`). Thread-safe.
-
-    ``judge(key)`` -> None (drop), 0.0 (deliver now) or the delay in seconds; :meth:`later` runs a delivery
-    on the injector's own timer thread (one thread, a heap of due times, started on first use).
-    """
-
-    def __init__(self, cfg: FaultConfig, node_id: str) -> None:
-        import random
-
-        self.cfg = cfg
-        self.node_id = node_id
-        self._rng = random.Random(cfg.seed)
-        self._lock = threading.Lock()
-        self._cond = threading.Condition(self._lock)
-        self._heap: list[tuple[float, int, Callable[[], Any]]] = []
-        self._n = 0
-        self._thread: threading.Thread | None = None
-        self._closed = False
-        self._drop = frozenset(cfg.drop_topics)
-        self._delay = frozenset(cfg.delay_topics)
-
-    def applies(self, key: str) -> bool:
-        """Whether ``key`` is another drone's key on a topic this layer drops or delays."""
-        try:
-            _, node, topic = _keys.parse_key(key)
-        except ValueError:
-            return False
-        if node == self.node_id or node in (_keys.GCS, _keys.SIM):
-            return False
-        return (topic in self._drop and self.cfg.drop_prob > 0.0) or (topic in self._delay and self.cfg.delay_s > 0.0)
-
-    def judge(self, key: str) -> float | None:
-        """None: drop; 0.0: deliver now; > 0: deliver that many seconds late."""
-        try:
-            _, node, topic = _keys.parse_key(key)
-        except ValueError:
-            return 0.0
-        if node == self.node_id or node in (_keys.GCS, _keys.SIM):
-            return 0.0
-        if topic in self._drop and self.cfg.drop_prob > 0.0:
-            with self._lock:
-                u = self._rng.random()
-            if u < self.cfg.drop_prob:
-                return None
-        if topic in self._delay and self.cfg.delay_s > 0.0:
-            return float(self.cfg.delay_s)
-        return 0.0
-
-    def later(self, delay_s: float, fn: Callable[[], Any]) -> None:
-        import heapq
-        import time
-
-        with self._cond:
-            if self._closed:
-                return
-            self._n += 1
-            heapq.heappush(self._heap, (time.monotonic() + delay_s, self._n, fn))
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, name=f"fault-delay-{self.node_id}", daemon=True)
-                self._thread.start()
-            self._cond.notify()
-
-    def _run(self) -> None:
-        import heapq
-        import time
-
-        while True:
-            with self._cond:
-                while not self._closed and (not self._heap or self._heap[0][0] > time.monotonic()):
-                    self._cond.wait(None if not self._heap else max(0.0, self._heap[0][0] - time.monotonic()))
-                if self._closed:
-                    return
-                _, _, fn = heapq.heappop(self._heap)
-            try:
-                fn()
-            except Exception:  # the delivery logs its own errors; never let the timer thread die
-                log.exception("%s: delayed delivery failed", self.node_id)
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._heap.clear()
-            self._cond.notify_all()
 
 
 _OPEN_TRANSPORTS: weakref.WeakSet = weakref.WeakSet()
@@ -499,9 +350,9 @@ class Transport:
         self._stats: dict[str, TopicStats] = {}
         self._closed = False
         self._logrl = _RateLimitedLog()
-        self._fault: _FaultInjector | None = None
+        self._fault: FaultInjector | None = None
         if config.fault.active:
-            self._fault = _FaultInjector(config.fault, node_id)
+            self._fault = FaultInjector(config.fault, node_id)
             log.warning("%s: SIMULATED NETWORK FAULTS on receive: drop %.0f%% of %s from other drones, delay %s by "
                         "%.0f ms", node_id, 100 * config.fault.drop_prob, config.fault.drop_topics,
                         config.fault.delay_topics, 1e3 * config.fault.delay_s)

@@ -1,13 +1,13 @@
 """The flight recorder: one MCAP file per drone (and one for simulator ground truth), crash-tolerant.
 
-    from onboard.recorder import Recorder, drone_log_path, channel_name
+    from flightdata.recorder import Recorder, channel_name
 
-    with Recorder(drone_log_path(flight_dir, "drone_1"), node_id="drone_1") as rec:
+    with Recorder.new_sortie(flight_dir, "drone_1") as rec:    # drone_1.s<next>.mcap, never an existing file
         rec.record_received("cmd", rx)                       # a transport.Received: bytes as received
         data = bus.publish(key, state); rec.record("state", data)   # what we sent, bytes as sent
         rec.record_message("health", health_msg)             # encode here
 
-File layout (readable by the standard MCAP tools and :mod:`onboard.flightlog`):
+File layout (readable by the standard MCAP tools and :mod:`flightdata.flightlog`):
 
 * profile ``"skycap"``; one **channel per topic** (``state``, ``camera/image``, ``camera_info``, ``cmd``,
   ``ack``, ``plan``, ``sim/keypoints2d``, ``detections``, ``keypoints2d``, ``health``, ``target``, ``truth``
@@ -24,7 +24,7 @@ Crash tolerance: callers only put bytes on a queue (never blocked by disk); a wr
 current MCAP chunk and, every ``flush_interval_s`` (default 0.5 s), closes the chunk, flushes and
 ``os.fsync``\\ s the file. A ``kill -9`` or power loss therefore loses at most the last
 ``flush_interval_s`` plus the fsync time; the file then lacks its summary and footer:
-:func:`onboard.flightlog.read_messages` reads such a file as it is, and :func:`onboard.flightlog.recover`
+:func:`flightdata.flightlog.read_messages` reads such a file as it is, and :func:`flightdata.flightlog.recover`
 (or the Go CLI's ``mcap recover in.mcap -o out.mcap``) rewrites it into a finalised one.
 On :meth:`Recorder.close` the queue is drained and the summary (statistics, chunk and message indexes)
 and footer are written; recorders still open when the interpreter exits normally are closed then.
@@ -53,6 +53,7 @@ from mcap.writer import CompressionType, Writer
 from shared_msgs import keys as _keys
 from shared_msgs.codec import TYPE_BY_TAG, encode
 from shared_msgs.messages import Header, Message, now_ns
+from flightdata.folder import FlightFolder
 from skycap.errors import SkycapError
 
 __all__ = [
@@ -60,10 +61,7 @@ __all__ = [
     "RecorderError",
     "MESSAGE_ENCODING",
     "PROFILE",
-    "TRUTH_FILE",
     "channel_name",
-    "drone_log_path",
-    "truth_log_path",
     "schema_name",
 ]
 
@@ -72,21 +70,10 @@ log = logging.getLogger(__name__)
 PROFILE = "skycap"
 MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "jsonschema"
-TRUTH_FILE = "truth.mcap"
 
 
 class RecorderError(SkycapError):
     """The flight recorder cannot write its file (bad path, disk full, closed recorder)."""
-
-
-def drone_log_path(flight_dir: str | Path, drone_id: str) -> Path:
-    """``<flight_dir>/<drone_id>.mcap`` (``drone_1.mcap``...): the file of one drone's recorder."""
-    return Path(flight_dir) / f"{drone_id}.mcap"
-
-
-def truth_log_path(flight_dir: str | Path) -> Path:
-    """``<flight_dir>/truth.mcap``: the simulator's ground truth."""
-    return Path(flight_dir) / TRUTH_FILE
 
 
 def channel_name(key: str, own_node: str) -> str:
@@ -174,11 +161,14 @@ class Recorder:
         self.max_queue_bytes = int(max_queue_bytes)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "wb")
+            self._file = open(self.path, "xb")  # exclusive: a recording is never overwritten or truncated
+        except FileExistsError:
+            raise RecorderError(f"{self.path} already exists; a recording is never overwritten: record a new sortie "
+                                "(Recorder.new_sortie) or choose another file") from None
         except OSError as e:
             raise RecorderError(f"cannot create the flight log {self.path}: {e}; choose a writable folder") from None
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
-        self._writer.start(profile=PROFILE, library="skycap onboard.recorder")
+        self._writer.start(profile=PROFILE, library="skycap flightdata.recorder")
         meta = {"node_id": node_id, "created_ns": str(now_ns())}
         meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
         self._writer.add_metadata("skycap", meta)
@@ -198,6 +188,20 @@ class Recorder:
         self._thread.start()
         _OPEN_RECORDERS.add(self)
         log.info("recording %s (flush every %.2f s, %s)", self.path, self.flush_interval_s, compression)
+
+    @classmethod
+    def new_sortie(cls, flight_dir: str | Path, node_id: str, **kw: Any) -> Recorder:
+        """A recorder on ``node_id``'s next sortie in ``flight_dir`` (:meth:`FlightFolder.new_recording`).
+        Another process that took the same number first makes this one take the next."""
+        folder = FlightFolder(flight_dir)
+        for _ in range(100):
+            path = folder.new_recording(node_id)
+            try:
+                return cls(path, node_id=node_id, **kw)
+            except RecorderError:
+                if not path.exists():
+                    raise
+        raise RecorderError(f"{flight_dir}: no free sortie number for {node_id} after 100 tries")
 
     # ------------------------------------------------------------------------------------- callers
     def record(self, topic: str, data: bytes, log_time_ns: int | None = None) -> bool:
@@ -226,7 +230,7 @@ class Recorder:
         return self.record(topic, encode(msg), log_time_ns)
 
     def record_received(self, topic: str, rx: Any) -> bool:
-        """Record an :class:`onboard.transport.Received` (its bytes, log time = its receive time)."""
+        """Record an :class:`comms.transport.Received` (its bytes, log time = its receive time)."""
         return self.record(topic, rx.data, rx.t_received_ns)
 
     def stats(self) -> dict[str, int]:

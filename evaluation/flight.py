@@ -46,30 +46,19 @@ import msgspec
 import numpy as np
 
 from shared_msgs import CameraFrame, Command, Health, OrbitPlan, SimTruth, VehicleState
+from flightdata.folder import FlightFolder, load_plan, read_sim_truth
+from onboard.tracking.roi import box_in_roi
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
 __all__ = ["SummaryError", "orbit_errors", "min_pairwise_distance_m", "yaw_to_center_error_deg_rms", "summarize_flight", "format_table",
-           "save_plan", "load_plan", "write_summary", "summarize_tracking", "format_tracking_table", "box_in_roi",
+           "write_summary", "summarize_tracking", "format_tracking_table",
            "lost_time_s"]
 
 
 class SummaryError(SkycapError):
     """A flight folder that lacks what the summary needs."""
-
-
-def save_plan(plan: OrbitPlan, path: str | Path) -> Path:
-    p = Path(path)
-    p.write_bytes(msgspec.json.format(msgspec.json.encode(plan), indent=2))
-    return p
-
-
-def load_plan(path: str | Path) -> OrbitPlan:
-    try:
-        return msgspec.json.decode(Path(path).read_bytes(), type=OrbitPlan)
-    except (OSError, msgspec.DecodeError, msgspec.ValidationError) as e:
-        raise SummaryError(f"cannot read the orbit plan {path}: {e}") from None
 
 
 def _wrap_rad(a):
@@ -129,30 +118,6 @@ def min_pairwise_distance_m(pos_ned_m: np.ndarray) -> float:
     return best
 
 
-def read_sim_truth(path: str | Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The simulator truth (``truth.mcap``, SimTruth) of the samples that hold every drone of ``drone_ids``,
-    in time order: (t_ns (T,) int64, person root (T, 3), drone positions (T, D, 3), drone yaw_rad (T, D)),
-    world NED; T = 0 when there is none (the caller says what it needed)."""
-    from onboard.flightlog import FlightLog
-
-    ts, person, pos, yaw = [], [], [], []
-    for m in FlightLog(path).messages():
-        msg = m.msg
-        if not isinstance(msg, SimTruth):
-            continue
-        by_id = {v.drone_id: v for v in msg.vehicles}
-        if not all(d in by_id for d in drone_ids):
-            continue
-        ts.append(msg.header.t_measurement_ns)
-        person.append(msg.person_root_ned_m)
-        pos.append([by_id[d].position_ned_m for d in drone_ids])
-        yaw.append([_yaw_of_q(by_id[d].q_world_body) for d in drone_ids])
-    o = np.argsort(ts)
-    D = len(drone_ids)
-    return (np.asarray(ts, dtype=np.int64)[o], np.asarray(person, dtype=float).reshape(-1, 3)[o],
-            np.asarray(pos, dtype=float).reshape(-1, D, 3)[o], np.asarray(yaw, dtype=float).reshape(-1, D)[o])
-
-
 def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_s (T,), positions (D, T, 3), yaw_rad (D, T)) of the drones from the simulator truth."""
     t_ns, _, pos, yaw = read_sim_truth(path, drone_ids)
@@ -161,14 +126,9 @@ def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarra
     return t_ns * 1e-9, np.transpose(pos, (1, 0, 2)), yaw.T
 
 
-def _yaw_of_q(q_wxyz) -> float:
-    w, x, y, z = q_wxyz
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
 def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt_m: float = 0.3) -> dict:
     """The summary dict of a flight folder (see the module docstring); writes nothing."""
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
 
     flight_dir = Path(flight_dir)
     plan = load_plan(flight_dir / "plan.json")
@@ -280,7 +240,7 @@ def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | Non
     ``window_s`` (UNIX seconds, e.g. the steady orbit), over that window (``*_window`` keys). Returns {} when
     either file is absent.
     """
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
     from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
     from skycap.skeleton import JOINT_GROUPS, SCORED_JOINTS
 
@@ -332,15 +292,6 @@ def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | Non
 
 # ------------------------------------------------------------------------------------------------------------
 # tracking flights
-def box_in_roi(box_xyxy, roi_xywh, tol_px: float = 1.0) -> bool:
-    """Whether the box (x0, y0, x1, y1) lies inside the ROI (x, y, w, h), within tol_px."""
-    x, y, w, h = roi_xywh
-    if w <= 0 or h <= 0:
-        return False
-    return (box_xyxy[0] >= x - tol_px and box_xyxy[1] >= y - tol_px and box_xyxy[2] <= x + w + tol_px
-            and box_xyxy[3] <= y + h + tol_px)
-
-
 def lost_time_s(t_tracking_s: np.ndarray, t0_s: float, t1_s: float, max_gap_s: float = 1.0) -> float:
     """Seconds of [t0, t1] not within max_gap_s after some time in t_tracking_s (sorted)."""
     t = np.sort(np.asarray(t_tracking_s, dtype=float))
@@ -363,7 +314,7 @@ def _interp_rows(t_query: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.nda
 
 def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
     """The tracking figures of a ``--mode track`` flight (see the module doc); reads the recordings."""
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
     from shared_msgs import Detections, Keypoints2D, TargetEstimate
 
     flight_dir = Path(flight_dir)

@@ -1,6 +1,6 @@
-"""Read flight recorder files (MCAP written by :mod:`onboard.recorder`), finalised or cut short by a crash.
+"""Read flight recorder files (MCAP written by :mod:`flightdata.recorder`), finalised or cut short by a crash.
 
-    from onboard.flightlog import FlightLog
+    from flightdata.flightlog import FlightLog
 
     log = FlightLog("flights/demo/drone_1.mcap")
     log.topic_counts()                               # {"state": 3012, "camera/image": 601, ...}
@@ -81,7 +81,7 @@ class FlightLog:
                 tail = b""
         if head != MAGIC:
             raise FlightLogError(
-                f"{self.path} is not an MCAP file (starts with {head[:8]!r}); flight logs are written by onboard.recorder"
+                f"{self.path} is not an MCAP file (starts with {head[:8]!r}); flight logs are written by flightdata.recorder"
             )
         self.finalised = tail == MAGIC
         self.size_bytes = size
@@ -170,7 +170,7 @@ class FlightLog:
             try:
                 return SeekingReader(f).get_summary()
             except (McapError, EOFError, struct.error, ValueError) as e:
-                raise FlightLogError(f"{self.path}: damaged MCAP summary ({e}); try onboard.flightlog.recover") from None
+                raise FlightLogError(f"{self.path}: damaged MCAP summary ({e}); try flightdata.flightlog.recover") from None
 
     def _iter_finalised(self, wanted: set[str] | None) -> Iterator[tuple[Any, Channel, McapMessage]]:
         with open(self.path, "rb") as f:
@@ -179,7 +179,7 @@ class FlightLog:
                 yield from reader.iter_messages(topics=None if wanted is None else sorted(wanted))
             except (McapError, EOFError, struct.error, ValueError) as e:
                 raise FlightLogError(
-                    f"{self.path}: damaged MCAP file ({type(e).__name__}: {e}); try onboard.flightlog.recover"
+                    f"{self.path}: damaged MCAP file ({type(e).__name__}: {e}); try flightdata.flightlog.recover"
                 ) from None
 
     def _iter_truncated(self, wanted: set[str] | None) -> Iterator[tuple[Any, Channel, McapMessage]]:
@@ -199,7 +199,7 @@ class FlightLog:
                     self.bytes_read = f.tell()
                     log.warning(
                         "%s was not finalised (recorder killed?): read %d messages, stopped at the incomplete record "
-                        "near byte %d of %d (%s). onboard.flightlog.recover() rewrites it as a finalised file.",
+                        "near byte %d of %d (%s). flightdata.flightlog.recover() rewrites it as a finalised file.",
                         self.path, n, self.bytes_read, self.size_bytes, type(e).__name__,
                     )
                     return
@@ -238,7 +238,7 @@ def recover(src: str | Path, dst: str | Path) -> dict[str, int]:
     """
     from mcap.writer import Writer
 
-    from onboard.recorder import PROFILE
+    from flightdata.recorder import PROFILE
 
     src_log = FlightLog(src)
     dst = Path(dst)
@@ -249,7 +249,7 @@ def recover(src: str | Path, dst: str | Path) -> dict[str, int]:
     counts: dict[str, int] = {}
     with open(dst, "wb") as f:
         w = Writer(f)
-        w.start(profile=PROFILE, library="skycap onboard.flightlog.recover")
+        w.start(profile=PROFILE, library="skycap flightdata.flightlog.recover")
         for name, data in meta.items():
             w.add_metadata(name, data)
         schema_ids: dict[int, int] = {}

@@ -10,7 +10,7 @@
 detector, ``<drone>/sim/detections``) in its cooperative filter, publishes the fused target and flies the
 formation MPC around it, starting from the operator's approximate start position of the person
 (``track.start_guess_ned_m``); GPS-grade position estimate by default (``track.rtk``) so that the filter's
-own-offset correction shows. The summary then adds the tracking figures (see :mod:`groundstation.summary`).
+own-offset correction shows. The summary then adds the tracking figures (see :mod:`evaluation.flight`).
 
 Fault injection (``faults.*``, :class:`FaultsDemoConfig`; simulation/chaos options, all off by default):
 teammate messages dropped / teammates' detections delayed at every agent (the transport's receive-side
@@ -29,7 +29,7 @@ What it launches (each an OS process, as on the real system; logs in ``<out>/log
 4. the fleet client, in this process (ground-station heartbeat; take off, orbit plan, start, then land).
 
 Then it stops everything cleanly (SIGTERM: agents close their recordings), runs ``skycap reconstruct
-<out>`` when that command exists, and writes ``summary.json`` (see :mod:`groundstation.summary`) and
+<out>`` when that command exists, and writes ``summary.json`` (see :mod:`evaluation.flight`) and
 prints its table. The flight folder: ``drone_<i>.mcap``, ``truth.mcap``, ``config.toml`` (resolved),
 ``plan.json``, ``summary.json``, ``logs/``.
 """
@@ -51,7 +51,7 @@ from pathlib import Path
 from skycap.config import add_config_args
 from skycap.errors import SkycapError
 
-log = logging.getLogger("skycap.demo")
+log = logging.getLogger("apps.demo")
 
 __all__ = ["DemoConfig", "OrbitDemoConfig", "register", "run_demo"]
 
@@ -208,7 +208,7 @@ def _drone_ids(n: int) -> list[str]:
 
 
 def _has_command(name: str) -> bool:
-    from skycap.cli import build_parser
+    from apps.cli import build_parser
 
     parser = build_parser()
     for action in parser._subparsers._group_actions:  # noqa: SLF001 - argparse has no public accessor
@@ -268,10 +268,11 @@ def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[flo
 def run_demo(cfg: DemoConfig) -> dict | None:
     """Run the whole demo; returns the summary dict (None when the flight produced none)."""
     from groundstation.fleet import FleetClient, make_orbit_plan
-    from groundstation.summary import format_table, reconstruction_accuracy, save_plan, summarize_flight
+    from evaluation.flight import format_table, reconstruction_accuracy, summarize_flight
+    from flightdata.folder import FlightFolder
     from onboard.orbit import evenly_spaced_phases
-    from onboard.recorder import Recorder, truth_log_path
-    from onboard.transport import Transport, TransportConfig
+    from flightdata.recorder import Recorder, truth_log_path
+    from comms.transport import Transport, TransportConfig
     from shared_msgs import SimTruth, keys
     from skycap.config import save_config
 
@@ -294,7 +295,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     fc = cfg.faults
     sim_set += cfg.sim_set
     save_config(cfg, out / "config.toml")
-    py = [sys.executable, "-m", "skycap.cli"]
+    py = [sys.executable, "-m", "apps.cli"]
     procs = _Procs(logs)
     bus = Transport.open(TransportConfig.rendezvous(cfg.zenoh_endpoint), "demo")
     truth_rec = Recorder(truth_log_path(out), node_id="sim", metadata={"fleet": cfg.fleet})
@@ -307,7 +308,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     t_begin = time.monotonic()
     try:
         # 1. simulator (+ truth); 2. cameras; 3. agents
-        sim_cmd = [sys.executable, "-m", "skycap.demo", "--fleet", cfg.fleet, "--zenoh-connect",
+        sim_cmd = [sys.executable, "-m", "apps.demo", "--fleet", cfg.fleet, "--zenoh-connect",
                    cfg.zenoh_endpoint, "--truth-hz", str(cfg.truth_hz), "--out", str(out),
                    "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
         for s in sim_set:
@@ -368,7 +369,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         center = tuple(cfg.track.start_guess_ned_m) if track else tuple(o.center_ned_m)
         plan = make_orbit_plan(ids, center, o.radius_m, o.altitude_m, 0.0 if track else o.angular_speed_rad_s, o.direction,
                                start_in_s=o.start_in_s, min_separation_m=o.min_separation_m, phase_offset_rad=phases)
-        save_plan(plan, out / "plan.json")
+        FlightFolder(out).save_plan(plan)
         fleet.send_plan(plan)
         _require(fleet.wait_acks(plan.plan_id, ids, 5), ids, "plan")
         _require(fleet.command("start", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "start")
@@ -435,7 +436,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             log.info("no 'skycap reconstruct' command in this build: skipping reconstruction")
     summary = summarize_flight(out, settle_s=cfg.settle_s)
     if track:
-        from groundstation.summary import summarize_tracking
+        from evaluation.flight import summarize_tracking
 
         summary["mode"] = "track"
         summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
@@ -450,7 +451,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(format_table(summary), flush=True)
     if track:
-        from groundstation.summary import format_tracking_table
+        from evaluation.flight import format_tracking_table
 
         print(format_tracking_table(summary["tracking"]), flush=True)
     acc = recon.get("accuracy_vs_truth") or {}
@@ -546,15 +547,15 @@ def _sim_node_main(argv: list[str] | None = None) -> int:
     import asyncio
 
 
-    from onboard.transport import Transport, TransportConfig
+    from comms.transport import Transport, TransportConfig
     from shared_msgs import SimTruth, VehicleTruth, keys
     from simulator.config import SimConfig
     from simulator.runner import SimWorld
-    from simulator.vehicle.autopilot import quat_wxyz_from_R
-    from skycap.cli import setup_logging
+    from skycap.frames import quat_wxyz_from_R
+    from skycap.logsetup import setup_logging
     from skycap.config import load_config, save_config
 
-    ap = argparse.ArgumentParser(prog="python -m skycap.demo", description="the demo's simulator node")
+    ap = argparse.ArgumentParser(prog="python -m apps.demo", description="the demo's simulator node")
     ap.add_argument("--fleet", default="demo")
     ap.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447")
     ap.add_argument("--truth-hz", type=float, default=50.0)

@@ -14,14 +14,16 @@ import logging
 import sys
 
 from skycap import __version__
+from skycap.errors import SkycapError
+from skycap.logsetup import setup_logging
 
 #: Modules that contribute subcommands, in help order.
 COMMAND_MODULES = (
-    "skycap.demo",
+    "apps.demo",
     "simulator.cli",
     "simulator.scene.cli",
     "onboard.cli",
-    "onboard.flightlog",
+    "flightdata.flightlog",
     "onboard.detector.cli",
     "groundstation.cli",
     "reconstruction.cli",
@@ -30,15 +32,6 @@ COMMAND_MODULES = (
 )
 
 log = logging.getLogger("skycap")
-
-
-def setup_logging(level: str = "INFO") -> None:
-    """Log to stderr (journald picks it up under systemd) with a compact format."""
-    logging.basicConfig(
-        level=getattr(logging, level.upper(), logging.INFO),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        stream=sys.stderr,
-    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -73,8 +66,6 @@ def main(argv: list[str] | None = None) -> int:
         log.warning("interrupted")
         return 130
     except Exception as e:  # clear one-line error for expected problems; traceback at DEBUG
-        from skycap.errors import SkycapError
-
         if isinstance(e, SkycapError):
             log.debug("details", exc_info=True)
             print(f"skycap {args.command}: error: {e}", file=sys.stderr)

@@ -1,0 +1,1 @@
+"""Applications: the command-line registry (``skycap``), the demo launcher and its process supervisor."""

@@ -1,0 +1,1 @@
+"""Communication: the Zenoh transport adapter and the fault wrapper used in simulation."""

@@ -1,0 +1,128 @@
+"""Simulated network faults on receive: a drop / delay layer that :class:`comms.transport.Transport` applies
+to other drones' messages when :class:`FaultConfig` is active (simulation and fault tests only; off on real
+drones)."""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import random
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from comms.errors import TransportError
+from shared_msgs import keys as _keys
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FaultConfig:
+    """Simulated network faults on RECEIVE -- a chaos/simulation option for fault tests; leave it off (the
+    defaults) on real drones.
+
+    Applies to messages this node receives on **other drones'** keys (``skycap/v1/<fleet>/<drone>/<topic>``
+    with ``<drone>`` not this node; ground-station, simulator and the node's own keys are never touched)
+    whose topic is listed: each such message is dropped with probability ``drop_prob`` (topics
+    ``drop_topics``) and delivered ``delay_s`` seconds late (topics ``delay_topics``; the
+    :class:`Received` then carries the late delivery time). Counted per subscription in
+    ``TopicStats.fault_dropped`` / ``fault_delayed``. ``seed`` makes the drop sequence reproducible.
+    """
+
+    drop_prob: float = 0.0
+    drop_topics: list[str] = field(default_factory=lambda: [_keys.STATE, _keys.DETECTIONS, _keys.FORMATION_PLAN,
+                                                            _keys.TARGET, _keys.HEALTH])
+    delay_s: float = 0.0
+    delay_topics: list[str] = field(default_factory=lambda: [_keys.DETECTIONS])
+    seed: int = 0
+
+    @property
+    def active(self) -> bool:
+        return self.drop_prob > 0.0 or self.delay_s > 0.0
+
+    def validate(self) -> None:
+        if not 0.0 <= self.drop_prob <= 1.0:
+            raise TransportError(f"transport.fault.drop_prob={self.drop_prob} must be within 0..1 (0 = off)")
+        if not 0.0 <= self.delay_s <= 60.0:
+            raise TransportError(f"transport.fault.delay_s={self.delay_s} must be within 0..60 s (0 = off)")
+
+
+class FaultInjector:
+    """The receive-side fault layer of one transport (see :class:`FaultConfig`). Thread-safe.
+
+    ``judge(key)`` -> None (drop), 0.0 (deliver now) or the delay in seconds; :meth:`later` runs a delivery
+    on the injector's own timer thread (one thread, a heap of due times, started on first use).
+    """
+
+    def __init__(self, cfg: FaultConfig, node_id: str) -> None:
+        self.cfg = cfg
+        self.node_id = node_id
+        self._rng = random.Random(cfg.seed)
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._heap: list[tuple[float, int, Callable[[], Any]]] = []
+        self._n = 0
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self._drop = frozenset(cfg.drop_topics)
+        self._delay = frozenset(cfg.delay_topics)
+
+    def applies(self, key: str) -> bool:
+        """Whether ``key`` is another drone's key on a topic this layer drops or delays."""
+        try:
+            _, node, topic = _keys.parse_key(key)
+        except ValueError:
+            return False
+        if node == self.node_id or node in (_keys.GCS, _keys.SIM):
+            return False
+        return (topic in self._drop and self.cfg.drop_prob > 0.0) or (topic in self._delay and self.cfg.delay_s > 0.0)
+
+    def judge(self, key: str) -> float | None:
+        """None: drop; 0.0: deliver now; > 0: deliver that many seconds late."""
+        try:
+            _, node, topic = _keys.parse_key(key)
+        except ValueError:
+            return 0.0
+        if node == self.node_id or node in (_keys.GCS, _keys.SIM):
+            return 0.0
+        if topic in self._drop and self.cfg.drop_prob > 0.0:
+            with self._lock:
+                u = self._rng.random()
+            if u < self.cfg.drop_prob:
+                return None
+        if topic in self._delay and self.cfg.delay_s > 0.0:
+            return float(self.cfg.delay_s)
+        return 0.0
+
+    def later(self, delay_s: float, fn: Callable[[], Any]) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            self._n += 1
+            heapq.heappush(self._heap, (time.monotonic() + delay_s, self._n, fn))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name=f"fault-delay-{self.node_id}", daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._closed and (not self._heap or self._heap[0][0] > time.monotonic()):
+                    self._cond.wait(None if not self._heap else max(0.0, self._heap[0][0] - time.monotonic()))
+                if self._closed:
+                    return
+                _, _, fn = heapq.heappop(self._heap)
+            try:
+                fn()
+            except Exception:  # the delivery logs its own errors; never let the timer thread die
+                log.exception("%s: delayed delivery failed", self.node_id)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._heap.clear()
+            self._cond.notify_all()
