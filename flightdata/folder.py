@@ -47,7 +47,7 @@ import numpy as np
 from flightdata.flightlog import FlightLog
 from shared_msgs import OrbitPlan, SimTruth
 from skycap.errors import SkycapError
-from skycap.frames import yaw_of_quat_wxyz
+from skycap.frames import yaw_from_quat_wxyz
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +258,7 @@ def read_sim_truth(path: str | Path, drone_ids: list[str]) -> tuple[np.ndarray, 
         ts.append(msg.header.t_measurement_ns)
         person.append(msg.person_root_ned_m)
         pos.append([by_id[d].position_ned_m for d in drone_ids])
-        yaw.append([yaw_of_quat_wxyz(by_id[d].q_world_body) for d in drone_ids])
+        yaw.append([yaw_from_quat_wxyz(by_id[d].q_world_body) for d in drone_ids])
     o = np.argsort(ts)
     D = len(drone_ids)
     return (np.asarray(ts, dtype=np.int64)[o], np.asarray(person, dtype=float).reshape(-1, 3)[o],
