@@ -33,6 +33,15 @@ COMMAND_MODULES = (
 
 log = logging.getLogger("skycap")
 
+#: Packages of the optional extras (pyproject.toml) -> the extra that installs them. A drone's base install
+#: lacks them; a command that needs one says which extra to install.
+EXTRA_OF_PACKAGE = {"torch": "recon", "anny": "recon", "rerun": "recon", "PySide6": "gcs", "pymavlink": "sim"}
+
+
+def missing_extra(e: ModuleNotFoundError) -> str | None:
+    """The extra whose package ``e`` found missing, or None when it is not one of the extras' packages."""
+    return EXTRA_OF_PACKAGE.get((e.name or "").split(".")[0])
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="skycap", description="skycap: markerless human motion capture from a fleet of autonomous camera drones.")
@@ -65,6 +74,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         log.warning("interrupted")
         return 130
+    except ModuleNotFoundError as e:
+        extra = missing_extra(e)
+        if extra is None:
+            raise
+        log.debug("details", exc_info=True)
+        print(f"skycap {args.command}: error: this command needs {e.name!r}, which the base install (a drone's) "
+              f"leaves out; install the '{extra}' extra: pip install 'skycap[{extra}]' (or 'skycap[all]')",
+              file=sys.stderr)
+        return 2
     except Exception as e:  # clear one-line error for expected problems; traceback at DEBUG
         if isinstance(e, SkycapError):
             log.debug("details", exc_info=True)

@@ -30,7 +30,7 @@ What it launches (each an OS process, as on the real system; logs in ``<out>/log
 
 Then it stops everything cleanly (SIGTERM: agents close their recordings), runs ``skycap reconstruct
 <out>`` when that command exists, and writes ``summary.json`` (see :mod:`evaluation.flight`) and
-prints its table. The flight folder: ``drone_<i>.mcap``, ``truth.mcap``, ``config.toml`` (resolved),
+prints its table. The flight folder (:mod:`flightdata.folder`): ``drone_<i>.s001.mcap``, ``truth.mcap``, ``config.toml`` (resolved),
 ``plan.json``, ``summary.json``, ``logs/``.
 """
 
@@ -48,7 +48,17 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from skycap.config import add_config_args
+from apps.supervisor import ProcessSupervisor
+from comms.faults import MalformedDetectionsInjector
+from comms.transport import Transport, TransportConfig
+from evaluation.flight import (format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
+                               summarize_tracking)
+from flightdata.folder import FlightFolder
+from flightdata.recorder import Recorder
+from groundstation.fleet import FleetClient, make_orbit_plan
+from onboard.orbit import evenly_spaced_phases
+from shared_msgs import SimTruth, keys
+from skycap.config import ConfigError, add_config_args, config_from_args, save_config
 from skycap.errors import SkycapError
 
 log = logging.getLogger("apps.demo")
@@ -154,8 +164,6 @@ class DemoConfig:
     settle_s: float = 8.0
 
     def validate(self) -> "DemoConfig":
-        from skycap.config import ConfigError
-
         if not 1 <= self.drones <= 20:
             raise ConfigError(f"drones={self.drones}: use 1..20")
         if self.mode not in ("orbit", "track"):
@@ -195,8 +203,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from skycap.config import config_from_args
-
     cfg = config_from_args(DemoConfig, args, {"drones": args.drones, "duration_s": args.duration, "out": args.out,
                                                 "mode": getattr(args, "mode", None)})
     summary = run_demo(cfg.validate())
@@ -217,43 +223,6 @@ def _has_command(name: str) -> bool:
     return False
 
 
-class _Procs:
-    """Child processes of the demo, each with its log file; stopped in reverse order."""
-
-    def __init__(self, log_dir: Path):
-        self.log_dir = log_dir
-        self.items: list[tuple[str, subprocess.Popen]] = []
-
-    def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
-        f = open(self.log_dir / f"{name}.log", "w")
-        log.info("starting %s: %s", name, " ".join(cmd))
-        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
-        self.items.append((name, p))
-        return p
-
-    def check_alive(self, skip: set[str] | frozenset = frozenset()) -> None:
-        for name, p in self.items:
-            if name not in skip and p.poll() is not None:
-                raise SkycapError(f"{name} exited early (code {p.returncode}); see {self.log_dir / (name + '.log')}")
-
-    def stop(self, names: list[str] | None = None, timeout_s: float = 30.0) -> dict[str, int]:
-        """SIGTERM the named processes (all if None), wait, SIGKILL what is left; returns exit codes."""
-        chosen = [(n, p) for n, p in self.items if names is None or n in names]
-        for n, p in chosen:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        codes = {}
-        t_end = time.monotonic() + timeout_s
-        for n, p in chosen:
-            try:
-                codes[n] = p.wait(max(0.1, t_end - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.error("%s did not stop within %.0f s: killing it", n, timeout_s)
-                os.killpg(p.pid, signal.SIGKILL)
-                codes[n] = p.wait()
-        return codes
-
-
 def _look_down_deg(cfg: DemoConfig) -> float:
     """Gimbal pitch that points the camera from the orbit at the centre (negative = down)."""
     return -math.degrees(math.atan2(cfg.orbit.altitude_m + cfg.orbit.center_ned_m[2], cfg.orbit.radius_m))
@@ -267,22 +236,14 @@ def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[flo
 
 def run_demo(cfg: DemoConfig) -> dict | None:
     """Run the whole demo; returns the summary dict (None when the flight produced none)."""
-    from groundstation.fleet import FleetClient, make_orbit_plan
-    from evaluation.flight import format_table, reconstruction_accuracy, summarize_flight
-    from flightdata.folder import FlightFolder
-    from onboard.orbit import evenly_spaced_phases
-    from flightdata.recorder import Recorder, truth_log_path
-    from comms.transport import Transport, TransportConfig
-    from shared_msgs import SimTruth, keys
-    from skycap.config import save_config
-
-    out = Path(cfg.out)
-    logs = out / "logs"
+    flight = FlightFolder(cfg.out)
+    out = flight.path
+    if flight.has_recordings() or flight.summary_path.exists():
+        raise SkycapError(f"{out} already holds a flight ({', '.join(flight.drone_ids()) or 'truth / summary'}); "
+                          "recordings are never overwritten: pass a new --out folder (or move that one away)")
+    logs = flight.logs_dir
     logs.mkdir(parents=True, exist_ok=True)
     track = cfg.mode == "track"
-    for old in [*out.glob("drone_*.mcap"), *out.glob("drone_*.track.json"), out / "truth.mcap", out / "summary.json",
-                out / "plan.json"]:
-        old.unlink(missing_ok=True)
     ids = _drone_ids(cfg.drones)
     phases = evenly_spaced_phases(ids)
     sim_set = [f"vehicles.count={cfg.drones}", f"ports.offboard_base={cfg.mavlink_base}", "ports.local_base=0",
@@ -294,11 +255,11 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         sim_set += ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
     fc = cfg.faults
     sim_set += cfg.sim_set
-    save_config(cfg, out / "config.toml")
+    save_config(cfg, flight.config_path)
     py = [sys.executable, "-m", "apps.cli"]
-    procs = _Procs(logs)
+    procs = ProcessSupervisor(logs)
     bus = Transport.open(TransportConfig.rendezvous(cfg.zenoh_endpoint), "demo")
-    truth_rec = Recorder(truth_log_path(out), node_id="sim", metadata={"fleet": cfg.fleet})
+    truth_rec = Recorder(flight.truth_path, node_id="sim", metadata={"fleet": cfg.fleet})
     truth_sub = bus.subscribe(keys.sim_key(cfg.fleet, keys.TRUTH), lambda rx: truth_rec.record_received("truth", rx),
                               SimTruth)
     fleet = FleetClient(cfg.fleet, bus, heartbeat_hz=2.0)
@@ -308,9 +269,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     t_begin = time.monotonic()
     try:
         # 1. simulator (+ truth); 2. cameras; 3. agents
-        sim_cmd = [sys.executable, "-m", "apps.demo", "--fleet", cfg.fleet, "--zenoh-connect",
-                   cfg.zenoh_endpoint, "--truth-hz", str(cfg.truth_hz), "--out", str(out),
-                   "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
+        sim_cmd = py + ["sim", "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint, "--truth-hz",
+                        str(cfg.truth_hz), "--out", str(logs / "sim"), "--status-every", "10",
+                        "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
         for s in sim_set:
             sim_cmd += ["--set", s]
         if fc.gps_jump_drone:
@@ -369,7 +330,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         center = tuple(cfg.track.start_guess_ned_m) if track else tuple(o.center_ned_m)
         plan = make_orbit_plan(ids, center, o.radius_m, o.altitude_m, 0.0 if track else o.angular_speed_rad_s, o.direction,
                                start_in_s=o.start_in_s, min_separation_m=o.min_separation_m, phase_offset_rad=phases)
-        FlightFolder(out).save_plan(plan)
+        flight.save_plan(plan)
         fleet.send_plan(plan)
         _require(fleet.wait_acks(plan.plan_id, ids, 5), ids, "plan")
         _require(fleet.command("start", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "start")
@@ -377,7 +338,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         t_orbit_end = t_start + cfg.duration_s
         log.info("%s for %.0f s", "tracking" if track else "orbiting", cfg.duration_s)
         next_table = time.time()
-        injector = _MalformedInjector(bus, cfg.fleet, ids, fc.malformed_detections_hz) if fc.malformed_detections_hz > 0 else None
+        injector = MalformedDetectionsInjector(bus, cfg.fleet, ids, fc.malformed_detections_hz) if fc.malformed_detections_hz > 0 else None
         while time.time() < t_orbit_end:
             procs.check_alive(skip=killed)
             now = time.time()
@@ -420,7 +381,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             t0 = time.monotonic()
             # the method that runs writes its summary: multiview -> reconstruction/, monocular (one drone) ->
             # reconstruction_monocular/; a summary left there by an earlier run in this folder must not be taken
-            summaries = (out / "reconstruction" / "summary.json", out / "reconstruction_monocular" / "summary.json")
+            summaries = tuple(flight.reconstruction_dir(m) / "summary.json" for m in ("multiview", "monocular"))
             for rs in summaries:
                 rs.unlink(missing_ok=True)
             with open(logs / "reconstruct.log", "w") as f:
@@ -436,8 +397,6 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             log.info("no 'skycap reconstruct' command in this build: skipping reconstruction")
     summary = summarize_flight(out, settle_s=cfg.settle_s)
     if track:
-        from evaluation.flight import summarize_tracking
-
         summary["mode"] = "track"
         summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
     if recon.get("exit_code") == 0:
@@ -448,11 +407,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     summary["reconstruction"] = recon
     if cfg.faults != FaultsDemoConfig():
         summary["faults"] = fault_report
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    flight.summary_path.write_text(json.dumps(summary, indent=2))
     print(format_table(summary), flush=True)
     if track:
-        from evaluation.flight import format_tracking_table
-
         print(format_tracking_table(summary["tracking"]), flush=True)
     acc = recon.get("accuracy_vs_truth") or {}
     if acc:
@@ -460,65 +417,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
               f"PA-MPJPE {acc.get('pa_mpjpe_mm_window', float('nan')):.1f} mm over {acc.get('frames_scored_window', 0)} "
               f"frames; whole flight incl. take-off and landing MPJPE {acc['mpjpe_mm']:.1f} mm, "
               f"PA-MPJPE {acc['pa_mpjpe_mm']:.1f} mm", flush=True)
-    print(f"summary: {out / 'summary.json'}", flush=True)
+    print(f"summary: {flight.summary_path}", flush=True)
     return summary
-
-
-class _MalformedInjector:
-    """Publishes malformed detections at ``rate_hz`` (fault injection), cycling through four kinds:
-
-    0. a NaN box on the first drone's own detector key (``<d1>/sim/detections``): refused by the codec on receipt;
-    1. an inverted box as the second drone's shared detections (``<d2>/detections``): decodes, the tracking
-       stage of every other drone must ignore it;
-    2. a non-rigid camera pose on ``<d1>/sim/detections``: decodes, the first drone's stage must ignore it;
-    3. a NaN camera pose as ``<d2>/detections``: refused by the codec on receipt.
-
-    With one drone, every kind goes to its own detector key.
-    """
-
-    KINDS = ("nan_box", "inverted_box", "non_rigid_pose", "nan_pose")
-
-    def __init__(self, bus, fleet: str, ids: list[str], rate_hz: float):
-        self.bus, self.fleet, self.ids, self.period_s = bus, fleet, ids, 1.0 / rate_hz
-        self.t_next = 0.0
-        self.n = 0
-        self.counts = {k: 0 for k in self.KINDS}
-
-    def message(self, kind: str, t_ns: int):
-        from shared_msgs import encode, keys, stamp_sent
-        from shared_msgs.messages import BoundingBox, Detections
-
-        own, mate = self.ids[0], self.ids[1] if len(self.ids) > 1 else self.ids[0]
-        key = keys.drone_key(self.fleet, own, keys.SIM_DETECTIONS) if kind in ("nan_box", "non_rigid_pose") or mate == own \
-            else keys.drone_key(self.fleet, mate, keys.DETECTIONS)
-        sender = own if "sim/detections" in key else mate
-        T = [1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, -6.0, 0, 0, 0, 1.0]
-        box = dict(x_min_px=100.0, y_min_px=100.0, x_max_px=140.0, y_max_px=200.0, score=0.9)
-        if kind == "nan_box":
-            box["x_min_px"] = float("nan")
-        elif kind == "inverted_box":
-            box["x_max_px"], box["x_min_px"] = 100.0, 140.0
-        elif kind == "non_rigid_pose":
-            T = [2.0 * v if i in (0, 5, 10) else v for i, v in enumerate(T)]
-        elif kind == "nan_pose":
-            T[3] = float("nan")
-        msg = Detections(header=Detections.make_header(sender, t_ns, 10_000_000 + self.n), camera_id="chaos",
-                         frame_index=10_000_000 + self.n, detector="fault_injector", mode="simulated",
-                         boxes=[BoundingBox(**box)], width_px=960, height_px=540, T_world_cam=tuple(T))
-        return key, encode(stamp_sent(msg))  # raw bytes: the sender-side validation is bypassed on purpose
-
-    def tick(self, now_s: float) -> None:
-        if now_s < self.t_next:
-            return
-        self.t_next = now_s + self.period_s
-        kind = self.KINDS[self.n % len(self.KINDS)]
-        key, data = self.message(kind, int(now_s * 1e9))
-        try:
-            self.bus.publish_raw(key, data)
-            self.counts[kind] += 1
-        except Exception as e:
-            log.warning("malformed-detection injection failed: %s", e)
-        self.n += 1
 
 
 def _require(acks: dict, ids: list[str], what: str) -> None:
@@ -537,134 +437,3 @@ def _camera_command() -> list[str] | None:
     except ModuleNotFoundError:
         return None
     return [sys.executable, "-m", "simulator.scene.node"]
-
-
-# ------------------------------------------------------------------------------------------------------------
-# The simulator node of the demo: ``skycap sim``'s SimWorld plus the ground truth (vehicles and, when the
-# scene is available, the person) published as SimTruth on ``sim/truth``. ``skycap sim`` does not publish
-# the truth (yet); this node does, in the simulator's own process, from a tick hook.
-def _sim_node_main(argv: list[str] | None = None) -> int:
-    import asyncio
-
-
-    from comms.transport import Transport, TransportConfig
-    from shared_msgs import SimTruth, VehicleTruth, keys
-    from simulator.config import SimConfig
-    from simulator.runner import SimWorld
-    from skycap.frames import quat_wxyz_from_R
-    from skycap.logsetup import setup_logging
-    from skycap.config import load_config, save_config
-
-    ap = argparse.ArgumentParser(prog="python -m apps.demo", description="the demo's simulator node")
-    ap.add_argument("--fleet", default="demo")
-    ap.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447")
-    ap.add_argument("--truth-hz", type=float, default=50.0)
-    ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--gimbal-pitch-deg", type=float, default=None,
-                    help="camera gimbal pitch reported in the truth (the simulator has no MAVLink gimbal yet)")
-    ap.add_argument("--gps-jump", default=None, metavar="INDEX,AT_S,N,E,D",
-                    help="fault injection: vehicle INDEX's position estimate jumps by (N, E, D) m AT_S seconds after "
-                         "the start time of the first orbit plan seen on the fleet's plan key")
-    ap.add_argument("--param-at", action="append", default=[], metavar="INDEX,AT_S,NAME,VALUE",
-                    help="set vehicle INDEX's autopilot parameter NAME to VALUE AT_S seconds after the start time of "
-                         "the first orbit plan (e.g. COM_OBL_RC_ACT=4: land on offboard loss); repeatable")
-    ap.add_argument("--set", action="append", default=[])
-    args = ap.parse_args(argv)
-    gimbal_rad = math.radians(args.gimbal_pitch_deg) if args.gimbal_pitch_deg is not None else 0.0
-    setup_logging("INFO")
-    cfg = load_config(SimConfig, overrides=args.set).validate()
-    if args.out is not None:
-        save_config(cfg, args.out / "logs" / "sim_config.toml")
-    world = SimWorld(cfg)
-    person = None
-    try:
-        from simulator.scene.config import PersonConfig
-        from simulator.scene.person import PersonSim
-
-        person = PersonSim(PersonConfig())
-    except Exception as e:  # the scene is optional for the flight
-        log.warning("no simulated person (%s): truth carries the vehicles only", e)
-    bus = Transport.open(TransportConfig.local_peer(args.zenoh_connect), "sim")
-    bus.declare_alive(keys.alive_key(args.fleet, keys.SIM))
-    key = keys.sim_key(args.fleet, keys.TRUTH)
-    zeros = tuple(0.0 for _ in range(51))
-
-    def publish_truth(t_ns: int, truths) -> None:
-        vehicles = [VehicleTruth(drone_id=f"drone_{v.index + 1}", position_ned_m=tuple(map(float, v.position_ned_m)),
-                                 velocity_ned_m_s=tuple(map(float, v.velocity_ned_m_s)),
-                                 q_world_body=tuple(map(float, quat_wxyz_from_R(v.R_world_body))),
-                                 gimbal_pitch_rad=gimbal_rad)
-                    for v in truths]
-        extra = person.state_at(world.t_s).truth_fields() if person is not None else \
-            dict(person_joints_ned_m=zeros, person_root_ned_m=(0.0, 0.0, 0.0))
-        bus.publish(key, SimTruth(header=SimTruth.make_header(keys.SIM, t_ns), vehicles=vehicles, **extra))
-
-    world.add_tick_hook(publish_truth, rate_hz=args.truth_hz)
-    _schedule_faults(world, bus, args)
-
-    async def main() -> None:
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
-        await world.run(stop, status_every_s=10.0)
-
-    try:
-        asyncio.run(main())
-    finally:
-        bus.close()
-    log.info("simulator node stopped after %.1f s (%d overruns)", world.t_s, world.overruns)
-    return 0
-
-
-def _schedule_faults(world, bus, args) -> None:
-    """The sim node's fault schedule (``--gps-jump``, ``--param-at``), relative to the start time of the first
-    orbit plan seen on the fleet's plan key (converted to simulation time when it arrives)."""
-    from shared_msgs import OrbitPlan, keys
-
-    n = len(world.vehicles)
-    jump = None
-    if args.gps_jump:
-        try:
-            idx_s, at_s, *off = args.gps_jump.split(",")
-            jump = (int(idx_s), float(at_s), [float(v) for v in off])
-            if len(jump[2]) != 3 or not 0 <= jump[0] < n:
-                raise ValueError
-        except ValueError:
-            raise SkycapError(f"--gps-jump {args.gps_jump!r}: give INDEX,AT_S,N,E,D with INDEX < {n}") from None
-    params = []
-    for text in args.param_at:
-        try:
-            idx_s, at_s, name, value = text.split(",")
-            params.append((int(idx_s), float(at_s), name.strip(), float(value)))
-            if not 0 <= params[-1][0] < n or world.vehicles[0].params.get(name.strip()) is None:
-                raise ValueError
-        except ValueError:
-            raise SkycapError(f"--param-at {text!r}: give INDEX,AT_S,NAME,VALUE with INDEX < {n} and a known "
-                              "parameter name") from None
-    if jump is None and not params:
-        return
-    pending: list[tuple[float, int, str, float]] = []
-
-    def on_plan(rx) -> None:  # Zenoh thread: schedule once, in simulation time
-        if pending or getattr(on_plan, "done", False):
-            return
-        on_plan.done = True
-        t0_sim = world.t_s + (rx.msg.start_time_ns * 1e-9 - time.time())
-        if jump is not None:
-            world.vehicles[jump[0]].schedule_gps_jump(t0_sim + jump[1], jump[2])
-            log.warning("FAULT: GPS jump of vehicle %d by %s m scheduled at sim t=%.1f s", jump[0], jump[2], t0_sim + jump[1])
-        pending.extend(sorted((t0_sim + at, i, name, v) for i, at, name, v in params))
-
-    def apply_params(t_ns: int, truths) -> None:  # simulation loop
-        while pending and pending[0][0] <= world.t_s:
-            _, i, name, v = pending.pop(0)
-            world.vehicles[i].params.set(name, v)
-            log.warning("FAULT schedule: vehicle %d parameter %s = %s at sim t=%.1f s", i, name, v, world.t_s)
-
-    world.add_tick_hook(apply_params, rate_hz=50.0)
-    bus.subscribe(keys.gcs_key(args.fleet, keys.PLAN), on_plan, OrbitPlan)
-
-
-if __name__ == "__main__":
-    sys.exit(_sim_node_main())

@@ -242,7 +242,7 @@ def bench_recorder(seconds: float) -> list[list[str]]:
     base = load_generator(None, seconds, np.random.default_rng(2))
     for comp in ("zstd", "lz4", "none"):
         with tempfile.TemporaryDirectory() as d:
-            path = Path(d) / "drone_1.mcap"
+            path = Path(d) / "drone_1.s001.mcap"
             rec = Recorder(path, node_id="drone_1", compression=comp)
             cpu = load_generator(rec, seconds, np.random.default_rng(2))
             st = rec.stats()
@@ -263,7 +263,7 @@ def bench_kill(runs: int) -> list[list[str]]:
     rng = np.random.default_rng(4)
     for _ in range(runs):
         with tempfile.TemporaryDirectory() as d:
-            path = Path(d) / "drone_1.mcap"
+            path = Path(d) / "drone_1.s001.mcap"
             child = subprocess.Popen([sys.executable, __file__, "--role", "rec", "--endpoint", str(path)],
                                      stdout=subprocess.PIPE, text=True)
             child.stdout.readline()

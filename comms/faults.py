@@ -1,6 +1,7 @@
 """Simulated network faults on receive: a drop / delay layer that :class:`comms.transport.Transport` applies
 to other drones' messages when :class:`FaultConfig` is active (simulation and fault tests only; off on real
-drones)."""
+drones), and :class:`MalformedDetectionsInjector`, a hostile publisher of malformed detections (the demo's
+fault injection)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from comms.errors import TransportError
+from shared_msgs import encode, stamp_sent
 from shared_msgs import keys as _keys
+from shared_msgs.messages import BoundingBox, Detections
 
 log = logging.getLogger(__name__)
 
@@ -126,3 +129,57 @@ class FaultInjector:
             self._closed = True
             self._heap.clear()
             self._cond.notify_all()
+
+
+class MalformedDetectionsInjector:
+    """Publishes malformed detections at ``rate_hz`` (fault injection), cycling through four kinds:
+
+    0. a NaN box on the first drone's own detector key (``<d1>/sim/detections``): refused by the codec on receipt;
+    1. an inverted box as the second drone's shared detections (``<d2>/detections``): decodes, the tracking
+       stage of every other drone must ignore it;
+    2. a non-rigid camera pose on ``<d1>/sim/detections``: decodes, the first drone's stage must ignore it;
+    3. a NaN camera pose as ``<d2>/detections``: refused by the codec on receipt.
+
+    With one drone, every kind goes to its own detector key.
+    """
+
+    KINDS = ("nan_box", "inverted_box", "non_rigid_pose", "nan_pose")
+
+    def __init__(self, bus, fleet: str, ids: list[str], rate_hz: float):
+        self.bus, self.fleet, self.ids, self.period_s = bus, fleet, ids, 1.0 / rate_hz
+        self.t_next = 0.0
+        self.n = 0
+        self.counts = {k: 0 for k in self.KINDS}
+
+    def message(self, kind: str, t_ns: int):
+        own, mate = self.ids[0], self.ids[1] if len(self.ids) > 1 else self.ids[0]
+        key = _keys.drone_key(self.fleet, own, _keys.SIM_DETECTIONS) if kind in ("nan_box", "non_rigid_pose") or mate == own \
+            else _keys.drone_key(self.fleet, mate, _keys.DETECTIONS)
+        sender = own if "sim/detections" in key else mate
+        T = [1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, -6.0, 0, 0, 0, 1.0]
+        box = dict(x_min_px=100.0, y_min_px=100.0, x_max_px=140.0, y_max_px=200.0, score=0.9)
+        if kind == "nan_box":
+            box["x_min_px"] = float("nan")
+        elif kind == "inverted_box":
+            box["x_max_px"], box["x_min_px"] = 100.0, 140.0
+        elif kind == "non_rigid_pose":
+            T = [2.0 * v if i in (0, 5, 10) else v for i, v in enumerate(T)]
+        elif kind == "nan_pose":
+            T[3] = float("nan")
+        msg = Detections(header=Detections.make_header(sender, t_ns, 10_000_000 + self.n), camera_id="chaos",
+                         frame_index=10_000_000 + self.n, detector="fault_injector", mode="simulated",
+                         boxes=[BoundingBox(**box)], width_px=960, height_px=540, T_world_cam=tuple(T))
+        return key, encode(stamp_sent(msg))  # raw bytes: the sender-side validation is bypassed on purpose
+
+    def tick(self, now_s: float) -> None:
+        if now_s < self.t_next:
+            return
+        self.t_next = now_s + self.period_s
+        kind = self.KINDS[self.n % len(self.KINDS)]
+        key, data = self.message(kind, int(now_s * 1e9))
+        try:
+            self.bus.publish_raw(key, data)
+            self.counts[kind] += 1
+        except Exception as e:
+            log.warning("malformed-detection injection failed: %s", e)
+        self.n += 1

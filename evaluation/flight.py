@@ -26,7 +26,7 @@ estimate predicted with its velocity to the time it was sent, against the truth 
 latency's prediction error), ``target_rmse_fleet_frame_m`` (the same after removing the fleet's mean GPS bias at
 each estimate's time, which no drone can observe without an absolute reference), ``person_in_roi_rate`` (own frames whose ROI, planned from the fused estimate before
 the frame's detection was fused, contains the person's exact image box, among frames where the person is in
-the image), ``mpc_solve_ms_median`` / ``mpc_solve_ms_p99`` / ``mpc_fallbacks`` (from ``<drone>.track.json``,
+the image), ``mpc_solve_ms_median`` / ``mpc_solve_ms_p99`` / ``mpc_fallbacks`` (from the sortie's ``<drone>.s<NNN>.track.json``,
 written by the agent), ``detector_hz`` (own detection messages per second), ``self_pos_err_m_before`` /
 ``self_pos_err_m_after`` (RMS 3D error of the drone's reported position against the truth, without / with the
 filter's estimated offset subtracted); fleet: ``min_separation_m`` (truth, steady window) and
@@ -42,13 +42,15 @@ import logging
 import math
 from pathlib import Path
 
-import msgspec
 import numpy as np
 
-from shared_msgs import CameraFrame, Command, Health, OrbitPlan, SimTruth, VehicleState
-from flightdata.folder import FlightFolder, load_plan, read_sim_truth
+from flightdata.flightlog import FlightLog
+from flightdata.folder import FlightFolder, Sortie, natural_key, read_sim_truth
+from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
 from onboard.tracking.roi import box_in_roi
+from shared_msgs import CameraFrame, Command, Detections, Health, Keypoints2D, OrbitPlan, SimTruth, TargetEstimate, VehicleState
 from skycap.errors import SkycapError
+from skycap.skeleton import JOINT_GROUPS, SCORED_JOINTS
 
 log = logging.getLogger(__name__)
 
@@ -126,21 +128,37 @@ def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarra
     return t_ns * 1e-9, np.transpose(pos, (1, 0, 2)), yaw.T
 
 
-def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt_m: float = 0.3) -> dict:
-    """The summary dict of a flight folder (see the module docstring); writes nothing."""
-    from flightdata.flightlog import FlightLog
+def _flight_logs(flight: FlightFolder, drone_ids: list[str], sortie: int | None) -> dict[str, list[Sortie]]:
+    """Each planned drone's recordings (every sortie, or only ``sortie``); a drone without one is an error."""
+    logs = flight.drone_logs(sortie=sortie, drone_ids=drone_ids)
+    missing = [d for d in drone_ids if d not in logs]
+    if missing:
+        which = "any recording" if sortie is None else f"a recording of sortie {sortie}"
+        raise SummaryError(f"{flight.path}: {missing} lack {which}: the agent did not record (--record-dir)")
+    log.info("summary of %s from %s", flight.path, flight.describe_logs(logs))
+    return logs
 
-    flight_dir = Path(flight_dir)
-    plan = load_plan(flight_dir / "plan.json")
-    drone_ids = sorted(plan.phase_offset_rad, key=lambda d: (len(d), d))
+
+def _messages(sorties: list[Sortie], topics: list[str]):
+    """The messages on ``topics`` of one drone's recordings, sortie after sortie."""
+    for s in sorties:
+        yield from FlightLog(s.path).messages(topics)
+
+
+def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt_m: float = 0.3,
+                     sortie: int | None = None) -> dict:
+    """The summary dict of a flight folder (see the module docstring) over every sortie of each drone, or
+    only ``sortie``; writes nothing."""
+    flight = FlightFolder(flight_dir)
+    flight_dir = flight.path
+    plan = flight.plan()
+    drone_ids = sorted(plan.phase_offset_rad, key=natural_key)
+    logs = _flight_logs(flight, drone_ids, sortie)
     per: dict[str, dict] = {}
     t_land = math.inf
     for d in drone_ids:
-        path = flight_dir / f"{d}.mcap"
-        if not path.is_file():
-            raise SummaryError(f"{path} is missing: the agent of {d} did not record")
         state_t, state_p, frame_t, setpoint_hz = [], [], [], []
-        for m in FlightLog(path).messages(["state", "camera/image", "health", "gcs/cmd"]):
+        for m in _messages(logs[d], ["state", "camera/image", "health", "gcs/cmd"]):
             msg = m.msg
             if isinstance(msg, VehicleState):
                 state_t.append(msg.header.t_measurement_ns * 1e-9)
@@ -156,7 +174,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
                   "_frame_t": np.asarray(frame_t),
                   # the first report of the orbit covers the offboard start: skip it
                   "setpoint_rate_hz": float(np.median(setpoint_hz[1:])) if len(setpoint_hz) > 1 else 0.0}
-    t_truth, pos, yaw = _read_truth(flight_dir / "truth.mcap", drone_ids)
+    t_truth, pos, yaw = _read_truth(flight.truth_path, drone_ids)
     t_start = plan.start_time_ns * 1e-9 + settle_s
     t_end = min(t_land, t_truth[-1])
     steady = (t_truth >= t_start) & (t_truth <= t_end)
@@ -189,6 +207,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
     flight_s = float(t_truth[flying][-1] - t_truth[flying][0]) if flying.any() else 0.0
     return {
         "flight_dir": str(flight_dir),
+        "recordings": {d: [s.path.name for s in ss] for d, ss in logs.items()},
         "plan_id": plan.plan_id,
         "drones": out_drones,
         "fleet": {
@@ -226,7 +245,7 @@ def format_table(summary: dict) -> str:
 
 def write_summary(flight_dir: str | Path, **kw) -> dict:
     s = summarize_flight(flight_dir, **kw)
-    (Path(flight_dir) / "summary.json").write_text(json.dumps(s, indent=2))
+    FlightFolder(flight_dir).summary_path.write_text(json.dumps(s, indent=2))
     return s
 
 
@@ -240,13 +259,11 @@ def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | Non
     ``window_s`` (UNIX seconds, e.g. the steady orbit), over that window (``*_window`` keys). Returns {} when
     either file is absent.
     """
-    from flightdata.flightlog import FlightLog
-    from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
-    from skycap.skeleton import JOINT_GROUPS, SCORED_JOINTS
 
-    flight_dir = Path(flight_dir)
-    npz = Path(motion_npz) if motion_npz else flight_dir / "reconstruction" / "motion.npz"
-    truth = flight_dir / "truth.mcap"
+    flight = FlightFolder(flight_dir)
+    flight_dir = flight.path
+    npz = Path(motion_npz) if motion_npz else flight.reconstruction_dir("multiview") / "motion.npz"
+    truth = flight.truth_path
     if not (npz.is_file() and truth.is_file()):
         return {}
     rec = np.load(npz)
@@ -312,17 +329,17 @@ def _interp_rows(t_query: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.nda
     return np.stack([np.interp(t_query, t, rows[:, i]) for i in range(rows.shape[1])], axis=1)
 
 
-def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
+def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0, sortie: int | None = None) -> dict:
     """The tracking figures of a ``--mode track`` flight (see the module doc); reads the recordings."""
-    from flightdata.flightlog import FlightLog
-    from shared_msgs import Detections, Keypoints2D, TargetEstimate
 
-    flight_dir = Path(flight_dir)
-    plan = load_plan(flight_dir / "plan.json")
-    drone_ids = sorted(plan.phase_offset_rad, key=lambda d: (len(d), d))
-    tt, person, vpos, _ = read_sim_truth(flight_dir / "truth.mcap", drone_ids)  # vpos: (T, D, 3)
+    flight = FlightFolder(flight_dir)
+    flight_dir = flight.path
+    plan = flight.plan()
+    drone_ids = sorted(plan.phase_offset_rad, key=natural_key)
+    logs = _flight_logs(flight, drone_ids, sortie)
+    tt, person, vpos, _ = flight.sim_truth(drone_ids)  # vpos: (T, D, 3)
     if not len(tt):
-        raise SummaryError(f"{flight_dir / 'truth.mcap'} holds no simulator truth")
+        raise SummaryError(f"{flight.truth_path} holds no simulator truth")
     tt = tt * 1e-9
     t_land = math.inf
     per = {}
@@ -333,7 +350,7 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
         rois: dict[int, tuple] = {}
         gt_boxes: dict[int, tuple] = {}
         det_t = []
-        for m in FlightLog(flight_dir / f"{d}.mcap").messages(["target", "detections", "sim/keypoints2d_gt", "state", "gcs/cmd"]):
+        for m in _messages(logs[d], ["target", "detections", "sim/keypoints2d_gt", "state", "gcs/cmd"]):
             msg = m.msg
             if isinstance(msg, TargetEstimate):
                 t_est.append(msg.header.t_measurement_ns * 1e-9)
@@ -355,8 +372,9 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0) -> dict:
                 p_state.append(msg.position_ned_m)
             elif isinstance(msg, Command) and msg.action == "land":
                 t_land = min(t_land, msg.header.t_sent_ns * 1e-9)
-        stats_path = flight_dir / f"{d}.track.json"
-        stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
+        # the counters of the drone's latest sortie that wrote them (each agent start counts from zero)
+        stats_paths = [s.track_stats_path for s in logs[d] if s.track_stats_path.is_file()]
+        stats = json.loads(stats_paths[-1].read_text()) if stats_paths else {}
         per[d] = dict(t_est=np.asarray(t_est), p_est=np.asarray(p_est, dtype=float).reshape(-1, 3), status=status,
                       t_pub=np.asarray(t_pub), p_pred=np.asarray(p_pred, dtype=float).reshape(-1, 3),
                       rois=rois, gt_boxes=gt_boxes, det_t=np.asarray(sorted(det_t)), t_state=np.asarray(t_state),

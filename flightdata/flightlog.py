@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 
 MAGIC = b"\x89MCAP0\r\n"
+PROFILE = "skycap"  #: the MCAP profile of skycap flight logs (written by the recorder and by recover)
 
 
 class FlightLogError(SkycapError):
@@ -230,43 +231,61 @@ def read_topic(path: str | Path, topic: str, expected: type[M] | None = None) ->
     return FlightLog(path).read_topic(topic, expected)
 
 
-def recover(src: str | Path, dst: str | Path) -> dict[str, int]:
+def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict[str, int]:
     """Rewrite the readable part of ``src`` (finalised or not) into a finalised MCAP file ``dst``.
 
     Returns the message count per topic written. Uses the same layout as the recorder (schemas, channel
-    metadata, log/publish times, sequence numbers).
+    metadata, log/publish times, sequence numbers). ``src`` is only read. An existing ``dst`` is refused
+    unless ``overwrite`` (then it is replaced whole, only once the new file is complete); ``dst`` can never
+    be ``src``.
     """
     from mcap.writer import Writer
-
-    from flightdata.recorder import PROFILE
 
     src_log = FlightLog(src)
     dst = Path(dst)
     if dst.resolve() == src_log.path.resolve():
         raise FlightLogError(f"recover() would overwrite {src}; write to another file")
+    if dst.exists() and not overwrite:
+        raise FlightLogError(f"{dst} already exists; a recording is never overwritten: choose another output file "
+                             "(or pass --force to replace it)")
     dst.parent.mkdir(parents=True, exist_ok=True)
     meta = src_log.metadata()
     counts: dict[str, int] = {}
-    with open(dst, "wb") as f:
-        w = Writer(f)
-        w.start(profile=PROFILE, library="skycap flightdata.flightlog.recover")
-        for name, data in meta.items():
-            w.add_metadata(name, data)
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        raw = src_log._iter_finalised(None) if src_log.finalised else src_log._iter_truncated(None)
-        for schema, channel, rec in raw:
-            cid = channel_ids.get(channel.id)
-            if cid is None:
-                sid = 0
-                if schema is not None:
-                    sid = schema_ids.get(schema.id) or w.register_schema(schema.name, schema.encoding, schema.data)
-                    schema_ids[schema.id] = sid
-                cid = w.register_channel(channel.topic, channel.message_encoding, sid, dict(channel.metadata))
-                channel_ids[channel.id] = cid
-            w.add_message(cid, rec.log_time, rec.data, rec.publish_time, rec.sequence)
-            counts[channel.topic] = counts.get(channel.topic, 0) + 1
-        w.finish()
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.partial")
+    try:
+        with open(tmp, "xb") as f:
+            w = Writer(f)
+            w.start(profile=PROFILE, library="skycap flightdata.flightlog.recover")
+            for name, data in meta.items():
+                w.add_metadata(name, data)
+            schema_ids: dict[int, int] = {}
+            channel_ids: dict[int, int] = {}
+            raw = src_log._iter_finalised(None) if src_log.finalised else src_log._iter_truncated(None)
+            for schema, channel, rec in raw:
+                cid = channel_ids.get(channel.id)
+                if cid is None:
+                    sid = 0
+                    if schema is not None:
+                        sid = schema_ids.get(schema.id) or w.register_schema(schema.name, schema.encoding, schema.data)
+                        schema_ids[schema.id] = sid
+                    cid = w.register_channel(channel.topic, channel.message_encoding, sid, dict(channel.metadata))
+                    channel_ids[channel.id] = cid
+                w.add_message(cid, rec.log_time, rec.data, rec.publish_time, rec.sequence)
+                counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            w.finish()
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if overwrite:
+        os.replace(tmp, dst)
+    else:
+        try:  # atomic and exclusive: a file that appeared at dst meanwhile is kept
+            os.link(tmp, dst)
+        except FileExistsError:
+            raise FlightLogError(f"{dst} appeared while recovering; the recovered log is left in {tmp}") from None
+        os.unlink(tmp)
     return dict(sorted(counts.items()))
 
 
@@ -286,6 +305,7 @@ def register(sub: Any) -> None:
     pr = cmds.add_parser("recover", help="rewrite a crash-truncated file as a finalised one")
     pr.add_argument("src", type=Path)
     pr.add_argument("dst", type=Path)
+    pr.add_argument("--force", action="store_true", help="replace an existing DST (never SRC)")
     pr.set_defaults(func=_cmd_recover)
 
 
@@ -316,6 +336,6 @@ def _cmd_info(args: Any) -> int:
 
 
 def _cmd_recover(args: Any) -> int:
-    counts = recover(args.src, args.dst)
+    counts = recover(args.src, args.dst, overwrite=args.force)
     print(f"wrote {args.dst}: {sum(counts.values())} messages on {len(counts)} topics")
     return 0

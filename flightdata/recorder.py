@@ -53,6 +53,7 @@ from mcap.writer import CompressionType, Writer
 from shared_msgs import keys as _keys
 from shared_msgs.codec import TYPE_BY_TAG, encode
 from shared_msgs.messages import Header, Message, now_ns
+from flightdata.flightlog import PROFILE
 from flightdata.folder import FlightFolder
 from skycap.errors import SkycapError
 
@@ -67,7 +68,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-PROFILE = "skycap"
 MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "jsonschema"
 

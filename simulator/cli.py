@@ -3,6 +3,11 @@
 skycap sim --drones 3                                   # vehicles 1..3 -> udp 14540..14542, GCS 14550
 skycap sim --drones 1 --set wind.mean_speed_m_s=5 --set battery.start_percent=20
 skycap sim --config sim.toml --duration 60
+skycap sim --drones 3 --fleet demo --zenoh-connect tcp/127.0.0.1:7447   # + ground truth on the fleet's sim/truth
+
+With ``--fleet``, the simulator joins the fleet's Zenoh network and publishes the ground truth (every vehicle's
+true pose and the simulated person's joints, ``SimTruth`` on ``sim/truth``, :mod:`simulator.truth`) and takes
+the simulator-side fault schedule (``--gps-jump``, ``--param-at``). The demo launches it this way.
 """
 
 from __future__ import annotations
@@ -10,10 +15,18 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import math
 import signal
 from pathlib import Path
 
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
 from skycap.config import add_config_args, config_from_args, save_config
+from skycap.errors import SkycapError
+
+if TYPE_CHECKING:
+    from simulator.config import SimConfig
 
 log = logging.getLogger("simulator")
 
@@ -33,19 +46,69 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--status-every", type=float, default=10.0, help="log each vehicle's state every N seconds (0: never)"
     )
+    net = p.add_argument_group("ground truth on the fleet network")
+    net.add_argument("--fleet", default=None, help="publish the ground truth on this fleet's sim/truth key (Zenoh)")
+    net.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447", help="Zenoh endpoint to join")
+    net.add_argument("--truth-hz", type=float, default=50.0, help="ground-truth publishing rate")
+    net.add_argument("--gimbal-pitch-deg", type=float, default=None,
+                     help="camera gimbal pitch reported in the truth (the simulator has no MAVLink gimbal yet)")
+    net.add_argument("--gps-jump", default=None, metavar="INDEX,AT_S,N,E,D",
+                     help="fault injection: vehicle INDEX's position estimate jumps by (N, E, D) m AT_S seconds after "
+                          "the start time of the first orbit plan seen on the fleet's plan key")
+    net.add_argument("--param-at", action="append", default=[], metavar="INDEX,AT_S,NAME,VALUE",
+                     help="set vehicle INDEX's autopilot parameter NAME to VALUE AT_S seconds after the start time of "
+                          "the first orbit plan (e.g. COM_OBL_RC_ACT=4: land on offboard loss); repeatable")
     add_config_args(p)
-    p.set_defaults(func=run_sim)
+    p.set_defaults(func=_run)
 
 
-def run_sim(args: argparse.Namespace) -> int:
-    from simulator.config import SimConfig
-    from simulator.runner import SimWorld
+def _run(args: argparse.Namespace) -> int:
+    from simulator.config import SimConfig  # imported here: `skycap --help` imports every command module
 
     cfg = config_from_args(SimConfig, args, extra={"vehicles.count": args.drones}).validate()
-    if args.out is not None:
-        path = save_config(cfg, Path(args.out) / "config.toml")
+    net = None
+    if args.fleet:
+        net = SimNetwork(fleet=args.fleet, zenoh_connect=args.zenoh_connect, truth_hz=args.truth_hz,
+                         gimbal_pitch_rad=math.radians(args.gimbal_pitch_deg or 0.0),
+                         gps_jump=args.gps_jump, param_at=list(args.param_at))
+    elif args.gps_jump or args.param_at:
+        raise SkycapError("--gps-jump and --param-at act on the fleet's plan: give --fleet too")
+    return run_sim(cfg, out=args.out, duration_s=args.duration, status_every_s=args.status_every, net=net)
+
+
+@dataclass
+class SimNetwork:
+    """The simulator on the fleet's network: ground truth publishing and the fault schedule."""
+
+    fleet: str
+    zenoh_connect: str = "tcp/127.0.0.1:7447"
+    truth_hz: float = 50.0
+    gimbal_pitch_rad: float = 0.0
+    gps_jump: str | None = None
+    param_at: list[str] = field(default_factory=list)
+
+
+def run_sim(cfg: SimConfig, out: Path | None = None, duration_s: float | None = None, status_every_s: float = 10.0,
+            net: SimNetwork | None = None) -> int:
+    """Run the simulator until SIGINT/SIGTERM (or ``duration_s``); with ``net``, also on the fleet network."""
+    # imported here: `skycap --help` imports every command module, and these pull in Zenoh and pymavlink
+    from comms.transport import Transport, TransportConfig
+    from shared_msgs import keys
+    from simulator.runner import SimWorld
+    from simulator.truth import SimFaults, TruthPublisher, schedule_faults
+
+    if out is not None:
+        path = save_config(cfg, Path(out) / "config.toml")
         log.info("resolved configuration written to %s", path)
     world = SimWorld(cfg)
+    bus = None
+    if net is not None:
+        faults = SimFaults.parse(net.gps_jump, net.param_at, len(world.vehicles),
+                                 lambda name: world.vehicles[0].params.get(name) is not None)
+        bus = Transport.open(TransportConfig.local_peer(net.zenoh_connect), "sim")
+        bus.declare_alive(keys.alive_key(net.fleet, keys.SIM))
+        TruthPublisher(world, bus, net.fleet, rate_hz=net.truth_hz, gimbal_pitch_rad=net.gimbal_pitch_rad)
+        schedule_faults(world, bus, net.fleet, faults)
 
     async def main() -> None:
         stop = asyncio.Event()
@@ -54,7 +117,7 @@ def run_sim(args: argparse.Namespace) -> int:
             loop.add_signal_handler(
                 sig, lambda s=sig: (log.info("%s received, stopping", signal.Signals(s).name), stop.set())
             )
-        await world.run(stop, duration_s=args.duration, status_every_s=args.status_every)
+        await world.run(stop, duration_s=duration_s, status_every_s=status_every_s)
 
     o = cfg.origin
     log.info(
@@ -69,7 +132,11 @@ def run_sim(args: argparse.Namespace) -> int:
         cfg.ports.offboard_base + cfg.vehicles.count - 1,
         f", ground station -> {cfg.ports.host}:{cfg.ports.gcs_port}" if cfg.ports.gcs_port else "",
     )
-    asyncio.run(main())
+    try:
+        asyncio.run(main())
+    finally:
+        if bus is not None:
+            bus.close()
     for line in world.status_lines():
         log.info("final: %s", line)
     log.info("simulator stopped after %.1f s (%d ticks, %d overruns)", world.t_s, world.ticks, world.overruns)

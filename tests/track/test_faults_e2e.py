@@ -42,7 +42,7 @@ def _fly(tmp_path_factory, name: str, drones: int, duration_s: float, *sets: str
 
 
 def _stats(out: Path, d: str) -> dict:
-    return json.loads((out / f"{d}.track.json").read_text())
+    return json.loads((out / f"{d}.s001.track.json").read_text())
 
 
 def _assert_tracking(summary: dict, drones: list[str]) -> None:

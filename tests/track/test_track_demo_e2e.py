@@ -23,7 +23,7 @@ def test_short_track_demo_follows_the_person(tmp_path):
            "--set", f"mavlink_base={free_udp_base(2)}", "--set", "fleet=\"tracktest\"", "--set", "reconstruct=false"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
-    for name in ("drone_1.mcap", "drone_2.mcap", "drone_1.track.json", "drone_2.track.json", "truth.mcap", "summary.json"):
+    for name in ("drone_1.s001.mcap", "drone_2.s001.mcap", "drone_1.s001.track.json", "drone_2.s001.track.json", "truth.mcap", "summary.json"):
         assert (out / name).exists(), name
     s = json.loads((out / "summary.json").read_text())
     assert s["mode"] == "track"
@@ -40,7 +40,7 @@ def test_short_track_demo_follows_the_person(tmp_path):
         assert row["detector_hz"] > 3.0, row
         assert math.isfinite(row["self_pos_err_m_before"]) and math.isfinite(row["self_pos_err_m_after"]), row
     for d in ("drone_1", "drone_2"):
-        stats = json.loads((out / f"{d}.track.json").read_text())
+        stats = json.loads((out / f"{d}.s001.track.json").read_text())
         assert stats["teammate_plans_received"] > 50, stats  # the teammate's MPC plans (formation/plan) arrive
         assert stats["filter_stats"]["accepted"] > 50, stats["filter_stats"]
     f = tr["fleet"]
@@ -50,7 +50,7 @@ def test_short_track_demo_follows_the_person(tmp_path):
     # the shared detections carry the sender's take-off ground in its reported frame (true ground 0 + its height bias)
     from flightdata.flightlog import FlightLog
 
-    dets = [m.msg for m in FlightLog(out / "drone_1.mcap").messages(["detections"])]
+    dets = [m.msg for m in FlightLog(out / "drone_1.s001.mcap").messages(["detections"])]
     grounds = [d.ground_down_m for d in dets]
     assert len(grounds) > 30 and all(g is not None and abs(g) < 2.5 for g in grounds), grounds[:5]
     # ... and the drone's reported position accuracy as their pose covariance: the simulator's GPS grade
@@ -74,7 +74,7 @@ def test_short_track_demo_with_the_real_detector(tmp_path):
         assert row["detections_source"] == "onnx:nanodet", row
         assert row["target_estimates"] > 20 and row["target_rmse_m"] < 2.0, row
         assert row["detector_hz"] > 1.0 and row["person_in_roi_rate"] > 0.6, row
-        stats = json.loads((out / f"{d}.track.json").read_text())
+        stats = json.loads((out / f"{d}.s001.track.json").read_text())
         det = stats["detector"]
         assert det["done"] > 20 and det["failed"] == 0, det
         assert stats["filter_stats"]["accepted"] > 20, stats["filter_stats"]

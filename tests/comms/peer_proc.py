@@ -1,6 +1,6 @@
 """A second OS process for the transport tests: a Zenoh peer that answers commands.
 
-    python tests/transport/peer_proc.py ENDPOINT FLEET NODE
+    python tests/comms/peer_proc.py ENDPOINT FLEET NODE
 
 Joins the peer listening at ENDPOINT (explicit tcp/127.0.0.1 endpoint, multicast scouting off), subscribes
 to the fleet's commands, declares its liveliness token, publishes 20 VehicleStates, then answers every

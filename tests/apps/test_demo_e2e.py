@@ -22,7 +22,7 @@ def test_short_demo_produces_a_sane_summary(tmp_path):
            "--set", "fleet=\"demotest\"", "--set", "reconstruct=false"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
-    for name in ("drone_1.mcap", "drone_2.mcap", "truth.mcap", "config.toml", "plan.json", "summary.json", "logs"):
+    for name in ("drone_1.s001.mcap", "drone_2.s001.mcap", "truth.mcap", "config.toml", "plan.json", "summary.json", "logs"):
         assert (out / name).exists(), name
     s = json.loads((out / "summary.json").read_text())
     assert set(s["drones"]) == {"drone_1", "drone_2"}
@@ -37,3 +37,9 @@ def test_short_demo_produces_a_sane_summary(tmp_path):
     assert s["fleet"]["min_separation_m"] > s["fleet"]["configured_min_separation_m"]
     assert 25.0 < s["fleet"]["flight_s"] < 90.0
     assert "setpt_hz" in r.stdout  # the printed table
+
+    # a second demo into the same folder is refused before it starts anything, and changes no file
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    r2 = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r2.returncode == 2 and "never overwritten" in r2.stderr and "--out" in r2.stderr, r2.stderr[-2000:]
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before

@@ -1,6 +1,6 @@
 """Child process for the kill -9 test: records a drone's load until killed.
 
-    python tests/recorder/record_proc.py PATH FLUSH_INTERVAL_S
+    python tests/flightdata/record_proc.py PATH FLUSH_INTERVAL_S
 
 Per ~10 ms: one VehicleState (seq 1, 2, ...); every 10th: a 40 KB CameraFrame; every 100th: a Health.
 Prints "recording" once the first second is on disk.

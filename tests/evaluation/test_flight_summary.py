@@ -69,7 +69,8 @@ def test_reconstruction_accuracy_against_truth(tmp_path):
     import numpy as np
 
     from evaluation.flight import reconstruction_accuracy
-    from flightdata.recorder import Recorder, truth_log_path
+    from flightdata.folder import FlightFolder
+    from flightdata.recorder import Recorder
     from shared_msgs import SimTruth
 
     rng = np.random.default_rng(0)
@@ -77,7 +78,7 @@ def test_reconstruction_accuracy_against_truth(tmp_path):
     t_truth = t0 + np.arange(0, 100) * 20_000_000  # 50 Hz for 2 s
     base = rng.normal(size=(17, 3))
     truth = [base + np.array([0.5 * k * 0.02, 0.0, 0.0]) for k in range(len(t_truth))]  # walking north 0.5 m/s
-    rec = Recorder(truth_log_path(tmp_path), node_id="sim")
+    rec = Recorder(FlightFolder(tmp_path).truth_path, node_id="sim")
     for t, j in zip(t_truth, truth):
         msg = SimTruth(header=SimTruth.make_header("sim", int(t)), vehicles=[],
                        person_joints_ned_m=tuple(j.ravel().tolist()), person_root_ned_m=tuple(j[11].tolist()))

@@ -11,7 +11,8 @@ import pytest
 from mcap.reader import make_reader
 
 from flightdata.flightlog import FlightLog, FlightLogError, read_topic
-from flightdata.recorder import Recorder, RecorderError, channel_name, drone_log_path, truth_log_path
+from flightdata.folder import FlightFolder
+from flightdata.recorder import Recorder, RecorderError, channel_name
 from shared_msgs import Command, Health, SimTruth, VehicleState, VehicleTruth, encode
 from shared_msgs.messages import Header
 
@@ -27,15 +28,15 @@ def state(i: int, t_ns: int) -> VehicleState:
 
 
 def test_paths_and_channel_names(tmp_path) -> None:
-    assert drone_log_path(tmp_path, "drone_2") == tmp_path / "drone_2.mcap"
-    assert truth_log_path(tmp_path) == tmp_path / "truth.mcap"
+    assert FlightFolder(tmp_path).new_recording("drone_2") == tmp_path / "drone_2.s001.mcap"
+    assert FlightFolder(tmp_path).truth_path == tmp_path / "truth.mcap"
     assert channel_name("skycap/v1/f/drone_1/camera/image", "drone_1") == "camera/image"
     assert channel_name("skycap/v1/f/gcs/cmd", "drone_1") == "gcs/cmd"
     assert channel_name("skycap/v1/f/drone_2/detections", "drone_1") == "drone_2/detections"
 
 
 def test_finalised_file_layout_and_round_trip(tmp_path) -> None:
-    path = drone_log_path(tmp_path, "drone_1")
+    path = FlightFolder(tmp_path).new_recording("drone_1")
     t0 = 1_700_000_000_000_000_000
     with Recorder(path, node_id="drone_1", metadata={"flight": "f42"}) as rec:
         for i in range(1, 51):
@@ -83,9 +84,9 @@ def test_truth_file_with_same_recorder(tmp_path) -> None:
         person_joints_ned_m=tuple(float(i) for i in range(51)),
         person_root_ned_m=(0.0, 0.0, 0.0),
     )
-    with Recorder(truth_log_path(tmp_path), node_id="sim") as rec:
+    with Recorder(FlightFolder(tmp_path).truth_path, node_id="sim") as rec:
         rec.record_message("truth", truth)
-    [t] = FlightLog(truth_log_path(tmp_path)).read_topic("truth", SimTruth)
+    [t] = FlightLog(FlightFolder(tmp_path).truth_path).read_topic("truth", SimTruth)
     assert t == truth
 
 
@@ -154,6 +155,16 @@ def test_log_cli_info_and_recover(tmp_path, capsys) -> None:
     cut.write_bytes(data[: len(data) - 40])
     args = parser.parse_args(["log", "recover", str(cut), str(tmp_path / "fixed.mcap")])
     assert args.func(args) == 0
+    # a second recover onto the existing output is refused unless told (--force), and leaves it as it was
+    fixed = (tmp_path / "fixed.mcap").read_bytes()
+    with pytest.raises(FlightLogError, match="already exists.*--force"):
+        args.func(args)
+    with pytest.raises(FlightLogError, match="would overwrite"):
+        flightlog.recover(cut, cut, overwrite=True)
+    assert (tmp_path / "fixed.mcap").read_bytes() == fixed and cut.read_bytes() == data[: len(data) - 40]
+    args = parser.parse_args(["log", "recover", "--force", str(path), str(tmp_path / "fixed.mcap")])
+    assert args.func(args) == 0
+    assert not list(tmp_path.glob(".*partial"))
     assert FlightLog(tmp_path / "fixed.mcap").finalised
     d = flightlog.describe(tmp_path / "fixed.mcap")
     assert d["topics"] == {"state": 10} and d["t_last_ns"] - d["t_first_ns"] == 9 * 10**8

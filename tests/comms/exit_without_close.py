@@ -1,6 +1,6 @@
 """Opens a transport (callback subscriber, token, publisher) and a recorder, then exits without closing them.
 
-    python tests/transport/exit_without_close.py ENDPOINT MCAP_PATH
+    python tests/comms/exit_without_close.py ENDPOINT MCAP_PATH
 """
 
 import sys
