@@ -3,7 +3,6 @@
 from onboard.tracking.filter import CooperativeFilter, FilterStats, TrackEstimate, TrackerConfig, TrackerError
 from onboard.tracking.measurement import (
     PERSON_HEIGHT_PRIOR_M,
-    CameraIntrinsics,
     DegenerateGeometryError,
     MeasurementConfig,
     MeasurementError,
@@ -16,7 +15,6 @@ from onboard.tracking.roi import DetectorPlan, RoiConfig, plan_detection, roi_fr
 
 __all__ = [
     "PERSON_HEIGHT_PRIOR_M",
-    "CameraIntrinsics",
     "CooperativeFilter",
     "DegenerateGeometryError",
     "DetectorPlan",

@@ -53,12 +53,12 @@ from typing import Literal
 
 import numpy as np
 
-from shared_msgs.messages import BoundingBox, CameraInfo, Detections
+from shared_msgs.messages import BoundingBox, Detections
+from skycap.camera import PinholeCamera
 from skycap.errors import SkycapError
 
 __all__ = [
     "PERSON_HEIGHT_PRIOR_M",
-    "CameraIntrinsics",
     "PositionMeasurement",
     "MeasurementError",
     "DegenerateGeometryError",
@@ -82,27 +82,6 @@ class MeasurementError(SkycapError, ValueError):
 
 class DegenerateGeometryError(MeasurementError):
     """Range from the height prior is unobservable (camera looking along the vertical); use bearing mode."""
-
-
-@dataclasses.dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics (pixels; distortion assumed removed by the detector's box coordinates)."""
-
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-    width_px: int
-    height_px: int
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) camera matrix."""
-        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
-
-    @classmethod
-    def from_camera_info(cls, info: CameraInfo) -> "CameraIntrinsics":
-        return cls(info.fx_px, info.fy_px, info.cx_px, info.cy_px, info.width_px, info.height_px)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,7 +245,7 @@ def _jacobian(model, edges: np.ndarray, H: float, cols=range(12)) -> np.ndarray:
 
 def measurement_from_box(
     box: BoundingBox | np.ndarray,
-    intrinsics: CameraIntrinsics,
+    intrinsics: PinholeCamera,
     T_world_cam: np.ndarray,
     T_world_cam_cov: np.ndarray | None = None,
     *,
@@ -425,7 +404,7 @@ def measurement_from_box(
 
 def measurements_from_detections(
     det: Detections,
-    intrinsics: CameraIntrinsics,
+    intrinsics: PinholeCamera,
     *,
     mode: MeasurementMode | None = None,
     fallback_to_bearing: bool = True,
@@ -474,7 +453,7 @@ def measurements_from_detections(
 
 def box_from_person(
     center_ned_m: np.ndarray,
-    intrinsics: CameraIntrinsics,
+    intrinsics: PinholeCamera,
     T_world_cam: np.ndarray,
     person_height_m: float = PERSON_HEIGHT_PRIOR_M,
     aspect_w_over_h: float = 0.4,

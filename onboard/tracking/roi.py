@@ -15,7 +15,8 @@ from typing import Literal
 import numpy as np
 
 from onboard.tracking.filter import TrackEstimate
-from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M, CameraIntrinsics, box_from_person
+from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M, box_from_person
+from skycap.camera import PinholeCamera
 from skycap.frames import invert_T
 
 __all__ = ["RoiConfig", "DetectorPlan", "roi_from_estimate", "plan_detection"]
@@ -46,7 +47,7 @@ class DetectorPlan:
 def roi_from_estimate(
     position_ned_m: np.ndarray,
     position_cov_m2: np.ndarray,
-    intrinsics: CameraIntrinsics,
+    intrinsics: PinholeCamera,
     T_world_cam: np.ndarray,
     config: RoiConfig = RoiConfig(),
 ) -> tuple[float, float, float, float] | None:
@@ -88,7 +89,7 @@ def roi_from_estimate(
 
 def plan_detection(
     estimate: TrackEstimate | None,
-    intrinsics: CameraIntrinsics,
+    intrinsics: PinholeCamera,
     T_world_cam: np.ndarray,
     t_now_ns: int,
     config: RoiConfig = RoiConfig(),

@@ -31,7 +31,8 @@ import msgspec
 import numpy as np
 
 from onboard.tracking.filter import CooperativeFilter, TrackEstimate, TrackerConfig
-from onboard.tracking.measurement import CameraIntrinsics, MeasurementConfig, measurements_from_detections
+from onboard.tracking.measurement import MeasurementConfig, measurements_from_detections
+from skycap.camera import PinholeCamera
 from onboard.tracking.roi import DetectorPlan, RoiConfig, plan_detection
 from shared_msgs.messages import CameraInfo, Detections, TargetEstimate
 
@@ -103,7 +104,7 @@ class TrackingStage:
         self.drone_id = drone_id
         self.cfg = config
         self.filter = CooperativeFilter(drone_id, config.tracker)
-        self.intrinsics: CameraIntrinsics | None = None
+        self.intrinsics: PinholeCamera | None = None
         self.last_plan: DetectorPlan | None = None
         self.offset_log: list[tuple[int, float, float, float]] = []
         self.counts = {"own_frames": 0, "own_measurements": 0, "teammate_measurements": 0, "roi_planned": 0,
@@ -142,9 +143,9 @@ class TrackingStage:
         self.own_ground_down_m = float(down_m)
 
     def set_camera_info(self, info: CameraInfo) -> None:
-        self.intrinsics = CameraIntrinsics.from_camera_info(info)
+        self.intrinsics = PinholeCamera.from_camera_info(info)
 
-    def _intrinsics_of(self, det: Detections) -> CameraIntrinsics | None:
+    def _intrinsics_of(self, det: Detections) -> PinholeCamera | None:
         if self.intrinsics is not None and (self.intrinsics.width_px, self.intrinsics.height_px) == (det.width_px, det.height_px):
             return self.intrinsics
         return self.intrinsics  # teammates fly the same camera model; None until our own info arrives

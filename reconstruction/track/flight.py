@@ -58,7 +58,7 @@ class DroneRecording:
     """
 
     drone_id: str
-    intrinsics: object  # onboard.tracking.measurement.CameraIntrinsics
+    intrinsics: object  # onboard.tracking.measurement.PinholeCamera
     detections: list
     detections_topic: str
     state_t_ns: np.ndarray
@@ -79,7 +79,7 @@ def _drone_files(flight_dir: Path) -> list[Path]:
 def read_recordings(flight_dir: str | Path) -> list[DroneRecording]:
     """Every drone of a flight folder -> :class:`DroneRecording` (drones without detections are left out)."""
     from flightdata.flightlog import FlightLog
-    from onboard.tracking.measurement import CameraIntrinsics
+    from skycap.camera import PinholeCamera
     from shared_msgs.messages import CameraInfo, Command, Detections, Keypoints2D, TargetEstimate, VehicleState
 
     out = []
@@ -120,7 +120,7 @@ def read_recordings(flight_dir: str | Path) -> list[DroneRecording]:
         o = np.argsort(st_t, kind="stable")
         ot = np.argsort(tg_t, kind="stable")
         out.append(DroneRecording(
-            drone_id=d, intrinsics=CameraIntrinsics.from_camera_info(info),
+            drone_id=d, intrinsics=PinholeCamera.from_camera_info(info),
             detections=sorted(dets[topic], key=lambda x: x.header.t_measurement_ns), detections_topic=topic,
             state_t_ns=np.asarray(st_t, dtype=np.int64)[o], state_position_ned_m=np.asarray(st_p, dtype=float).reshape(-1, 3)[o],
             target_t_ns=np.asarray(tg_t, dtype=np.int64)[ot], target_position_ned_m=np.asarray(tg_p, dtype=float).reshape(-1, 3)[ot],

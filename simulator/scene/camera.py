@@ -20,59 +20,13 @@ from simulator.scene.body import PARTS, Ellipsoids, body_ellipsoids
 
 PART_INDEX = {name: i for i, (name, _) in enumerate(PARTS)}
 from simulator.scene.config import CameraConfig
+from skycap.camera import PinholeCamera
 from skycap.frames import R_from_quat_wxyz, T_world_cam_from_pose, invert_T
 
 __all__ = [
     "PinholeCamera", "camera_pose", "GtProjection", "project_person", "ellipsoid_boxes",
     "joint_occlusion",
 ]  # fmt: skip
-
-
-@dataclasses.dataclass(frozen=True)
-class PinholeCamera:
-    """Undistorted pinhole camera (OpenCV optical frame)."""
-
-    width_px: int
-    height_px: int
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-
-    @classmethod
-    def from_fov(cls, width_px: int, height_px: int, hfov_deg: float) -> "PinholeCamera":
-        """Square pixels, centred principal point, fx = (width/2) / tan(hfov/2)."""
-        f = 0.5 * width_px / math.tan(math.radians(hfov_deg) / 2)
-        return cls(int(width_px), int(height_px), f, f, 0.5 * width_px, 0.5 * height_px)
-
-    @classmethod
-    def from_config(cls, cfg: CameraConfig) -> "PinholeCamera":
-        return cls.from_fov(cfg.width_px, cfg.height_px, cfg.hfov_deg)
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
-
-    @property
-    def vfov_deg(self) -> float:
-        return math.degrees(2 * math.atan(0.5 * self.height_px / self.fy_px))
-
-    def project_cam(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Camera-frame points (..., 3) -> (pixels (..., 2), depth z (...)); depth <= 0 is behind."""
-        z = p_cam[..., 2]
-        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-        u = self.fx_px * p_cam[..., 0] / zs + self.cx_px
-        v = self.fy_px * p_cam[..., 1] / zs + self.cy_px
-        return np.stack([u, v], axis=-1), z
-
-    def project(self, T_world_cam: np.ndarray, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World points (..., 3) -> (pixels (..., 2), depth (...))."""
-        T_cw = invert_T(np.asarray(T_world_cam, dtype=float))
-        p_cam = np.asarray(p_world, dtype=float) @ T_cw[:3, :3].T + T_cw[:3, 3]
-        return self.project_cam(p_cam)
-
-    def in_image(self, uv: np.ndarray) -> np.ndarray:
-        return (uv[..., 0] >= 0) & (uv[..., 0] < self.width_px) & (uv[..., 1] >= 0) & (uv[..., 1] < self.height_px)
 
 
 def camera_pose(

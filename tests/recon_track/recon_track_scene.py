@@ -8,10 +8,11 @@ import math
 
 import numpy as np
 
-from onboard.tracking.measurement import CameraIntrinsics, box_from_person, measurement_from_box
+from onboard.tracking.measurement import box_from_person, measurement_from_box
+from skycap.camera import PinholeCamera
 from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose
 
-CAM = CameraIntrinsics(fx_px=900.0, fy_px=900.0, cx_px=640.0, cy_px=360.0, width_px=1280, height_px=720)
+CAM = PinholeCamera(fx_px=900.0, fy_px=900.0, cx_px=640.0, cy_px=360.0, width_px=1280, height_px=720)
 PERSON_H = 1.69
 CENTER_DOWN = -PERSON_H / 2
 

@@ -6,11 +6,12 @@ import math
 
 import numpy as np
 
-from onboard.tracking.measurement import CameraIntrinsics, box_from_person, measurement_from_box
+from onboard.tracking.measurement import box_from_person, measurement_from_box
+from skycap.camera import PinholeCamera
 from shared_msgs.messages import BoundingBox, CameraInfo, Detections
 from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose
 
-CAM = CameraIntrinsics(fx_px=1000.0, fy_px=1000.0, cx_px=960.0, cy_px=540.0, width_px=1920, height_px=1080)
+CAM = PinholeCamera(fx_px=1000.0, fy_px=1000.0, cx_px=960.0, cy_px=540.0, width_px=1920, height_px=1080)
 PERSON_HALF_H = 0.845
 
 
