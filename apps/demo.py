@@ -213,16 +213,6 @@ def _drone_ids(n: int) -> list[str]:
     return [f"drone_{i + 1}" for i in range(n)]
 
 
-def _has_command(name: str) -> bool:
-    from apps.cli import build_parser
-
-    parser = build_parser()
-    for action in parser._subparsers._group_actions:  # noqa: SLF001 - argparse has no public accessor
-        if name in getattr(action, "choices", {}):
-            return True
-    return False
-
-
 def _look_down_deg(cfg: DemoConfig) -> float:
     """Gimbal pitch that points the camera from the orbit at the centre (negative = down)."""
     return -math.degrees(math.atan2(cfg.orbit.altitude_m + cfg.orbit.center_ned_m[2], cfg.orbit.radius_m))
@@ -283,15 +273,11 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             sim_cmd += ["--param-at", f"{ids.index(fc.kill_agent)},{max(0.0, fc.kill_agent_at_s - 0.2)},COM_OBL_RC_ACT,4"]
         procs.start("sim", sim_cmd)
         if cfg.cameras:
-            cam = _camera_command()
-            if cam is None:
-                log.warning("the simulator has no camera node yet: flying without cameras")
-            else:
-                for i, d in enumerate(ids):
-                    cmd = cam + ["--drone-id", d, "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint]
-                    for s in cfg.camera_set:
-                        cmd += ["--set", s]
-                    procs.start(f"camera_{d}", cmd)
+            for i, d in enumerate(ids):
+                cmd = _camera_command() + ["--drone-id", d, "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint]
+                for s in cfg.camera_set:
+                    cmd += ["--set", s]
+                procs.start(f"camera_{d}", cmd)
         for i, d in enumerate(ids):
             cmd = py + ["agent", "--drone-id", d, "--fleet", cfg.fleet, "--connection",
                         f"udpin://0.0.0.0:{cfg.mavlink_base + i}", "--record-dir", str(out),
@@ -377,24 +363,19 @@ def run_demo(cfg: DemoConfig) -> dict | None:
 
     recon: dict = {"ran": False}
     if cfg.reconstruct:
-        if _has_command("reconstruct"):
-            t0 = time.monotonic()
-            # the method that runs writes its summary: multiview -> reconstruction/, monocular (one drone) ->
-            # reconstruction_monocular/; a summary left there by an earlier run in this folder must not be taken
-            summaries = tuple(flight.reconstruction_dir(m) / "summary.json" for m in ("multiview", "monocular"))
-            for rs in summaries:
-                rs.unlink(missing_ok=True)
-            with open(logs / "reconstruct.log", "w") as f:
-                r = subprocess.run(py + ["reconstruct", str(out)], stdout=f, stderr=subprocess.STDOUT)
-            recon = {"ran": True, "exit_code": r.returncode, "seconds": round(time.monotonic() - t0, 1),
-                     "log": str(logs / "reconstruct.log")}
-            fresh = [rs for rs in summaries if rs.is_file()]
-            if r.returncode == 0 and fresh:
-                recon["summary"] = json.loads(fresh[0].read_text())
-            log.info("skycap reconstruct %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
-                     logs / "reconstruct.log")
-        else:
-            log.info("no 'skycap reconstruct' command in this build: skipping reconstruction")
+        t0 = time.monotonic()
+        # the method that runs writes its summary: multiview -> reconstruction/, monocular (one drone) ->
+        # reconstruction_monocular/ (the folder is new: run_demo refuses one that holds a flight)
+        summaries = tuple(flight.reconstruction_dir(m) / "summary.json" for m in ("multiview", "monocular"))
+        with open(logs / "reconstruct.log", "w") as f:
+            r = subprocess.run(py + ["reconstruct", str(out)], stdout=f, stderr=subprocess.STDOUT)
+        recon = {"ran": True, "exit_code": r.returncode, "seconds": round(time.monotonic() - t0, 1),
+                 "log": str(logs / "reconstruct.log")}
+        fresh = [rs for rs in summaries if rs.is_file()]
+        if r.returncode == 0 and fresh:
+            recon["summary"] = json.loads(fresh[0].read_text())
+        log.info("skycap reconstruct %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
+                 logs / "reconstruct.log")
     summary = summarize_flight(out, settle_s=cfg.settle_s)
     if track:
         summary["mode"] = "track"
@@ -428,12 +409,6 @@ def _require(acks: dict, ids: list[str], what: str) -> None:
         raise SkycapError(f"{what}: no answer from {missing}, refused/failed by {bad}; see the logs folder")
 
 
-def _camera_command() -> list[str] | None:
-    """The simulator's per-drone camera node command, when it exists."""
-    try:
-        import importlib
-
-        importlib.import_module("simulator.scene.node")
-    except ModuleNotFoundError:
-        return None
+def _camera_command() -> list[str]:
+    """The simulator's per-drone camera node command."""
     return [sys.executable, "-m", "simulator.scene.node"]

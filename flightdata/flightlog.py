@@ -33,6 +33,7 @@ from mcap.stream_reader import StreamReader
 from shared_msgs.codec import MessageError, decode
 from shared_msgs.messages import Message
 from skycap.errors import SkycapError
+from mcap.writer import Writer
 
 __all__ = ["FlightLog", "FlightLogError", "LogMessage", "read_messages", "read_topic", "recover"]
 
@@ -239,7 +240,6 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict[s
     unless ``overwrite`` (then it is replaced whole, only once the new file is complete); ``dst`` can never
     be ``src``.
     """
-    from mcap.writer import Writer
 
     src_log = FlightLog(src)
     dst = Path(dst)

@@ -22,6 +22,8 @@ from typing import Callable, Iterable
 
 from shared_msgs import Command, CommandAck, Health, OrbitPlan, VehicleState, keys
 from skycap.errors import SkycapError
+from comms.transport import Transport, TransportConfig
+from onboard.orbit import evenly_spaced_phases
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +51,6 @@ def make_orbit_plan(
 ) -> OrbitPlan:
     """An :class:`OrbitPlan` with the drones evenly spaced (in the given order) and a shared start time
     ``start_in_s`` from now (0 = each drone starts when it receives it)."""
-    from onboard.orbit import evenly_spaced_phases
 
     ids = list(drone_ids)
     if not ids:
@@ -102,7 +103,6 @@ class FleetClient:
 
     @classmethod
     def open(cls, fleet: str, transport_cfg=None, heartbeat_hz: float = 2.0) -> "FleetClient":
-        from comms.transport import Transport, TransportConfig
 
         bus = Transport.open(transport_cfg or TransportConfig(), node_id="gcs")
         client = cls(fleet, bus, heartbeat_hz)

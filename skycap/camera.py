@@ -18,15 +18,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING, Literal, Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 
 from skycap.errors import SkycapError
 from skycap.frames import invert_T
-
-if TYPE_CHECKING:
-    from shared_msgs import CameraInfo
 
 __all__ = ["PinholeCamera", "CameraError"]
 
@@ -35,6 +32,20 @@ DistortionModel = Literal["none", "plumb_bob"]
 
 class CameraError(SkycapError):
     """Camera parameters that describe no camera (non-positive size or focal length, bad distortion)."""
+
+
+class _CameraInfoLike(Protocol):
+    """What :meth:`PinholeCamera.from_camera_info` reads (the ``shared_msgs.CameraInfo`` message's fields;
+    the core does not import the message contract, which sits a layer above it)."""
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    distortion_model: str
+    distortion: tuple[float, ...]
 
 
 class _FovConfig(Protocol):
@@ -80,7 +91,7 @@ class PinholeCamera:
         return cls.from_fov(cfg.width_px, cfg.height_px, cfg.hfov_deg)
 
     @classmethod
-    def from_camera_info(cls, info: CameraInfo) -> PinholeCamera:
+    def from_camera_info(cls, info: _CameraInfoLike) -> PinholeCamera:
         """From the ``CameraInfo`` message (intrinsics and distortion; the mount is the message's own)."""
         return cls(width_px=int(info.width_px), height_px=int(info.height_px), fx_px=float(info.fx_px),
                    fy_px=float(info.fy_px), cx_px=float(info.cx_px), cy_px=float(info.cy_px),

@@ -26,6 +26,11 @@ from shared_msgs import keys
 from shared_msgs.messages import Message, SimTruth, VehicleState
 from simulator.scene.camera_node import CameraNode, CameraTruth, truth_from_messages
 from simulator.scene.config import SceneConfig
+from comms.transport import DEFAULT_RENDEZVOUS, Transport, TransportConfig
+from skycap.config import add_config_args, load_config
+from skycap.errors import SkycapError
+from skycap.logsetup import setup_logging
+import cv2
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +102,6 @@ def run_camera_node(cfg: SceneConfig, fleet: str, drone_id: str, bus, stop: thre
 
 
 def add_node_args(p: argparse.ArgumentParser) -> None:
-    from skycap.config import add_config_args
 
     p.add_argument("--fleet", required=True, help="fleet id (Zenoh key segment)")
     p.add_argument("--drone", "--drone-id", dest="drone", required=True, help="drone id, e.g. drone_1")
@@ -106,10 +110,7 @@ def add_node_args(p: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    from comms.transport import DEFAULT_RENDEZVOUS, Transport, TransportConfig
-    from skycap.config import load_config
 
-    import cv2
 
     cfg = load_config(SceneConfig, getattr(args, "config", None), getattr(args, "set", [])).validate()
     cv2.setNumThreads(1)  # one camera process per drone on a shared machine: no OpenCV thread pool contention
@@ -125,14 +126,12 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from skycap.logsetup import setup_logging
 
     ap = argparse.ArgumentParser(prog="python -m simulator.scene.node", description=__doc__.splitlines()[0])
     add_node_args(ap)
     ap.add_argument("--log-level", default="INFO")
     args = ap.parse_args(argv)
     setup_logging(args.log_level)
-    from skycap.errors import SkycapError
 
     try:
         return run_from_args(args)

@@ -24,6 +24,11 @@ from simulator.scene.camera_node import CameraNode, CameraTruth
 from simulator.scene.config import SceneConfig
 from simulator.scene.person import PersonSim
 from skycap.skeleton import COCO17_LIMBS
+from shared_msgs import keys
+from simulator.scene.camera_node import SIM_KEYPOINTS2D_GT
+from skycap.config import add_config_args, load_config, save_config
+from skycap.logsetup import setup_logging
+from tqdm import tqdm
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +46,6 @@ def orbit_truth(person: PersonSim, t_s: float, radius_m: float, altitude_m: floa
 
 
 def draw_overlay(img: np.ndarray, out: dict) -> np.ndarray:
-    from shared_msgs import keys
-    from simulator.scene.camera_node import SIM_KEYPOINTS2D_GT
 
     img = img.copy()
     gt = out[SIM_KEYPOINTS2D_GT].persons
@@ -70,7 +73,6 @@ def draw_overlay(img: np.ndarray, out: dict) -> np.ndarray:
 
 
 def run_preview(cfg: SceneConfig, out_dir: Path, seconds: float, radius_m: float, altitude_m: float, deg_per_s: float) -> Path:
-    from skycap.config import save_config
 
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.toml")
@@ -85,7 +87,6 @@ def run_preview(cfg: SceneConfig, out_dir: Path, seconds: float, radius_m: float
     sheet_at = set(np.linspace(0, n - 1, 12).astype(int).tolist())
     sheet = []
     try:
-        from tqdm import tqdm
 
         frames = tqdm(range(n), desc="rendering", unit="frame")
     except ImportError:  # tqdm is optional here
@@ -93,7 +94,6 @@ def run_preview(cfg: SceneConfig, out_dir: Path, seconds: float, radius_m: float
     for i in frames:
         state["t"] = i / fps
         out = node.step()
-        from shared_msgs import keys
 
         img = cv2.imdecode(np.frombuffer(out[keys.CAMERA_IMAGE].data, np.uint8), cv2.IMREAD_COLOR)
         img = draw_overlay(img, out)
@@ -111,7 +111,6 @@ def run_preview(cfg: SceneConfig, out_dir: Path, seconds: float, radius_m: float
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
-    from skycap.config import add_config_args
 
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--seconds", type=float, default=20.0)
@@ -122,7 +121,6 @@ def add_args(p: argparse.ArgumentParser) -> None:
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    from skycap.config import load_config
 
     cfg = load_config(SceneConfig, args.config, args.set).validate()
     run_preview(cfg, args.out, args.seconds, args.radius_m, args.altitude_m, args.deg_per_s)
@@ -130,7 +128,6 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from skycap.logsetup import setup_logging
 
     ap = argparse.ArgumentParser(prog="python -m simulator.scene.preview", description=__doc__.splitlines()[0])
     add_args(ap)
