@@ -1,6 +1,6 @@
 """``skycap demo``: a full simulated flight, headless: N drones orbit the person, then the flight is summarised.
 
-    skycap demo --out flights/demo                     # 3 drones, 60 s of orbit
+    skycap demo                                        # 3 drones, 60 s of orbit, into a new flights/demo-<time>/
     skycap demo --drones 2 --duration 20 --out /tmp/f --set orbit.radius_m=6
     skycap demo --set rtk=false                        # GPS-grade position estimate (m-level bias) instead of RTK
     skycap demo --mode track --out flights/track       # active capture: find and follow the person
@@ -37,6 +37,7 @@ prints its table. The flight folder (:mod:`flightdata.folder`): ``drone_<i>.s001
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -132,7 +133,8 @@ class DemoConfig:
     drones: int = 3
     #: seconds of orbit (take-off before and landing after come on top)
     duration_s: float = 60.0
-    out: str = "flights/demo"
+    #: the flight folder; empty: a new ``flights/demo-<UTC date>-<time>`` (an existing flight is never overwritten)
+    out: str = ""
     fleet: str = "demo"
     #: Zenoh rendezvous endpoint opened by this launcher
     zenoh_endpoint: str = "tcp/127.0.0.1:7447"
@@ -195,7 +197,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--drones", type=int, default=None, help="number of drones (default 3)")
     p.add_argument("--duration", type=float, default=None, help="seconds of orbit (default 60)")
-    p.add_argument("--out", type=Path, default=None, help="flight folder (default flights/demo)")
+    p.add_argument("--out", type=Path, default=None, help="a new flight folder (default: flights/demo-<UTC date>-<time>)")
     p.add_argument("--mode", choices=("orbit", "track"), default=None,
                    help="orbit (default): circle the plan's centre; track: find and follow the person (active capture)")
     add_config_args(p)
@@ -226,6 +228,8 @@ def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[flo
 
 def run_demo(cfg: DemoConfig) -> dict | None:
     """Run the whole demo; returns the summary dict (None when the flight produced none)."""
+    if not cfg.out:
+        cfg = dataclasses.replace(cfg, out=time.strftime("flights/demo-%Y%m%d-%H%M%S", time.gmtime()))
     flight = FlightFolder(cfg.out)
     out = flight.path
     if flight.has_recordings() or flight.summary_path.exists():
