@@ -61,7 +61,7 @@ def _name(pid: int) -> str:
         return str(pid)
     if "agent" in argv and "--drone-id" in argv:
         return "agent " + argv[argv.index("--drone-id") + 1]
-    if "apps.demo" in argv:
+    if "sim" in argv and "--fleet" in argv:
         return "simulator node"
     if "--drone-id" in argv:
         return "camera " + argv[argv.index("--drone-id") + 1]
@@ -76,9 +76,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--drones", type=int, default=3)
     ap.add_argument("--duration", type=float, default=60.0)
-    ap.add_argument("--out", type=Path, default=Path("/tmp/skycap_bench_demo"))
+    ap.add_argument("--out", type=Path, default=None, help="a new flight folder (default: a fresh temporary one)")
     ap.add_argument("extra", nargs="*", help="more arguments for skycap demo (after --)")
     args = ap.parse_args()
+    if args.out is None:  # the demo never writes into a folder that holds a flight
+        import tempfile
+
+        args.out = Path(tempfile.mkdtemp(prefix="skycap_bench_demo_")) / "flight"
     cmd = [sys.executable, "-m", "apps.cli", "demo", "--drones", str(args.drones), "--duration", str(args.duration),
            "--out", str(args.out), *args.extra]
     t0 = time.monotonic()
