@@ -19,7 +19,8 @@ def _q_yaw(T):
 
 
 def _write_flight(folder, scene):
-    from flightdata.recorder import Recorder, drone_log_path, truth_log_path
+    from flightdata.folder import FlightFolder
+    from flightdata.recorder import Recorder
     from shared_msgs.messages import (BoundingBox, CameraInfo, Detections, Header, Keypoints2D, PersonKeypoints,
                                       SimTruth, VehicleState, VehicleTruth)
 
@@ -31,7 +32,7 @@ def _write_flight(folder, scene):
         return Header(schema_version=1, sender_id=s, t_measurement_ns=int(t), t_sent_ns=int(t))
 
     for d, name in enumerate(ids):
-        with Recorder(drone_log_path(folder, name), node_id=name) as rec:
+        with Recorder.new_sortie(folder, name) as rec:
             rec.record_message("camera_info", CameraInfo(header=hdr(t_ns[0], name), camera_id="cam0", width_px=CAM.width_px,
                                height_px=CAM.height_px, fx_px=CAM.fx_px, fy_px=CAM.fy_px, cx_px=CAM.cx_px, cy_px=CAM.cy_px), int(t_ns[0]))  # fmt: skip
             for k in range(0, len(t_ns), 2):  # state at 50 Hz: reported = true + offset
@@ -60,7 +61,7 @@ def _write_flight(folder, scene):
                 rec.record_message("sim/keypoints2d", Keypoints2D(header=hdr(f["t_ns"], name), camera_id="cam0", frame_index=i,
                                    detector="sim", simulated=True, persons=[PersonKeypoints(keypoints_px=tuple(map(float, uv.reshape(-1))),
                                    confidence=(0.9,) * 17)]), f["t_ns"])  # fmt: skip
-    with Recorder(truth_log_path(folder), node_id="sim") as rec:
+    with Recorder(FlightFolder(folder).truth_path, node_id="sim") as rec:
         for k in range(0, len(t_ns), 2):
             veh = [VehicleTruth(drone_id=n, position_ned_m=tuple(map(float, scene.drones[k, d])), velocity_ned_m_s=(0.0, 0.0, 0.0),
                                 q_world_body=(1.0, 0.0, 0.0, 0.0)) for d, n in enumerate(ids)]  # fmt: skip
@@ -115,9 +116,9 @@ def test_multiview_reader_uses_the_refined_positions(flight):
 
     folder, scene, ids = flight
     if not (folder / "refined_track.npz").is_file():
-        from reconstruction.track.flight import refine_flight
+        from reconstruction.track.flight import RefineConfig, refine_flight
 
-        refine_flight(folder, person_height_m=1.69)
+        refine_flight(folder, RefineConfig(person_height_m=1.69))
     plain = read_flight(folder)
     refined = read_flight(folder, use_refined_poses=True)
     offsets = load_refined_offsets(folder)
@@ -139,11 +140,12 @@ def test_multiview_reader_uses_the_refined_positions(flight):
 def test_refine_errors_are_clear(tmp_path, flight):
     import shutil
 
+    from flightdata.folder import FlightFolderError
     from reconstruction.multiview.flight import read_flight
     from reconstruction.track.flight import refine_flight
     from reconstruction.track.smoother import SmootherError
 
-    with pytest.raises(SmootherError, match="no drone_"):
+    with pytest.raises(FlightFolderError, match="no drone recordings"):
         refine_flight(tmp_path)
     for f in flight[0].glob("drone_*.mcap"):
         shutil.copy(f, tmp_path / f.name)
