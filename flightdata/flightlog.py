@@ -35,7 +35,7 @@ from shared_msgs.messages import Message
 from skycap.errors import SkycapError
 from mcap.writer import Writer
 
-__all__ = ["FlightLog", "FlightLogError", "LogMessage", "read_messages", "read_topic", "recover"]
+__all__ = ["FlightLog", "FlightLogError", "LogMessage", "SortieLogs", "read_messages", "read_topic", "recover"]
 
 log = logging.getLogger(__name__)
 
@@ -220,6 +220,37 @@ class FlightLog:
                     break
         self.truncated = True
         self.bytes_read = self.size_bytes
+
+
+class SortieLogs:
+    """Several recordings of one node (its sorties, :meth:`flightdata.folder.FlightFolder.drone_logs`) read as
+    one log: file after file in the given (sortie) order, each file's messages as :class:`FlightLog` gives them.
+
+        logs = SortieLogs([s.path for s in FlightFolder(d).sorties("drone_1")])
+        states = logs.read_topic("state", VehicleState)
+
+    Sorties follow each other in time (one recording per agent start), so chaining them keeps time order.
+    """
+
+    def __init__(self, paths: Iterable[str | Path]) -> None:
+        self.logs = [FlightLog(p) for p in paths]
+        if not self.logs:
+            raise FlightLogError("no recordings to read: pass at least one <drone>.s<NNN>.mcap file")
+
+    @property
+    def paths(self) -> list[Path]:
+        return [fl.path for fl in self.logs]
+
+    def messages(self, topics: Iterable[str] | str | None = None, **kw: Any) -> Iterator[LogMessage]:
+        """:meth:`FlightLog.messages` of every file, file after file."""
+        if topics is not None and not isinstance(topics, str):
+            topics = list(topics)
+        for fl in self.logs:
+            yield from fl.messages(topics, **kw)
+
+    def read_topic(self, topic: str, expected: type[M] | None = None) -> list[M]:
+        """:meth:`FlightLog.read_topic` of every file, concatenated in file order."""
+        return [m for fl in self.logs for m in fl.read_topic(topic, expected)]
 
 
 def read_messages(path: str | Path, topics: Iterable[str] | str | None = None, **kw: Any) -> Iterator[LogMessage]:

@@ -22,6 +22,7 @@ Layout (version :data:`LAYOUT_VERSION`; every name below is spelled here and now
       logs/                           the processes' stderr logs (demo)
       reconstruction/                 multi-view reconstruction outputs (BVH, NPZ, CSV, .rrd, summary.json)
       reconstruction_monocular/       monocular reconstruction outputs (same files)
+      reconstruction_refined/         multi-view reconstruction with the refined drone positions (``skycap refine --reconstruct``)
       refined_track.npz / .json       the offline smoother's outputs (``skycap refine``)
 
 Layout 1 (before sorties) named a drone's only recording ``<drone_id>.mcap``; it reads as sortie 1.
@@ -63,6 +64,7 @@ CONFIG_FILE = "config.toml"
 SUMMARY_FILE = "summary.json"
 LOGS_DIR = "logs"
 RECONSTRUCTION_DIRS = {"multiview": "reconstruction", "monocular": "reconstruction_monocular"}
+RECONSTRUCTION_REFINED_DIR = "reconstruction_refined"
 REFINED_NPZ = "refined_track.npz"
 REFINED_JSON = "refined_track.json"
 
@@ -146,6 +148,11 @@ class FlightFolder:
     def refined_json_path(self) -> Path:
         return self.path / REFINED_JSON
 
+    @property
+    def refined_reconstruction_dir(self) -> Path:
+        """The multi-view reconstruction with the refined drone positions (``skycap refine --reconstruct``)."""
+        return self.path / RECONSTRUCTION_REFINED_DIR
+
     def reconstruction_dir(self, method: str) -> Path:
         """The output folder of a reconstruction method (``multiview`` or ``monocular``)."""
         try:
@@ -210,6 +217,11 @@ class FlightFolder:
     def describe_logs(self, logs: dict[str, list[Sortie]]) -> str:
         """One line that says which recordings a reader used, for its log and its summary."""
         return "; ".join(f"{d}: " + ", ".join(s.path.name for s in ss) for d, ss in logs.items())
+
+    @staticmethod
+    def recording_names(logs: dict[str, list[Sortie]]) -> dict[str, list[str]]:
+        """Per drone, the file names of the recordings a reader used (JSON-ready, for its summary)."""
+        return {d: [s.path.name for s in ss] for d, ss in logs.items()}
 
     def new_recording(self, node_id: str) -> Path:
         """The path of ``node_id``'s next sortie (one above the highest present). It does not exist yet;

@@ -146,17 +146,10 @@ def add_reconstruct_args(parser: argparse.ArgumentParser) -> None:
                         "perspective: scales the adult bone-length prior by radius / 0.55 m)")  # fmt: skip
 
 
-def reconstruct_flight(flight_dir: Path, args: argparse.Namespace) -> int:
-    """``skycap reconstruct FLIGHT_DIR --method monocular``: one drone's keypoints -> BVH/NPZ/CSV/RRD."""
-    import json
+def reconstruct_config(args: argparse.Namespace):
+    """``skycap reconstruct --method monocular`` options -> (:class:`MonocularRunConfig`, output folder or None)."""
+    from reconstruction.monocular.reconstruct import MonocularRunConfig
 
-    from reconstruction.monocular.reconstruct import read_flight_cameras, reconstruct_capture
-
-    cap = read_flight_cameras(flight_dir, camera=getattr(args, "mono_camera", None))
-    out = Path(getattr(args, "mono_out", None) or Path(flight_dir) / "reconstruction_monocular")
-    summary = reconstruct_capture(
-        cap, out, camera=getattr(args, "mono_camera", None), variant=getattr(args, "mono_variant", "perspective"),
-        body_rms_radius_m=getattr(args, "mono_body_radius_m", None),
-    )  # fmt: skip
-    print(json.dumps(summary, indent=2))
-    return 0
+    cfg = MonocularRunConfig(camera=args.mono_camera, variant=args.mono_variant or "perspective",
+                             body_rms_radius_m=args.mono_body_radius_m)
+    return cfg, args.mono_out

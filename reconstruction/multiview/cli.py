@@ -69,7 +69,10 @@ def add_reconstruct_args(parser: argparse.ArgumentParser) -> None:
                         "off by default: it helps on GPS-grade flights' pose, not on RTK-grade ones (reconstruction/track/README.md)")
 
 
-def reconstruct_flight(flight_dir: Path, args: argparse.Namespace) -> int:
-    from reconstruction.multiview.flight import reconstruct_flight_dir
+def reconstruct_config(args: argparse.Namespace):
+    """``skycap reconstruct --method multiview`` options -> (:class:`MultiviewConfig`, output folder or None)."""
+    from reconstruction.multiview.fit import FitConfig
+    from reconstruction.multiview.run import MultiviewConfig
 
-    return reconstruct_flight_dir(flight_dir, args)
+    fit = FitConfig(method=args.mv_fit or "product", device=args.mv_device or "cpu")
+    return MultiviewConfig(fit=fit, use_refined_poses=bool(args.mv_use_refined_poses)), args.mv_out

@@ -46,6 +46,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -197,10 +198,13 @@ def fit_capture(
     cfg: FitConfig | None = None,
     model: BodyModel | None = None,
     prior: PosePrior | None = None,
-    progress: bool = True,
+    progress: bool | Callable[[str, int, int], None] = True,
     init_joints_ned: np.ndarray | None = None,
 ) -> FitResult:
     """Fit the body to a capture at output times ``t_grid_ns`` (T,) with ``cfg.method``.
+
+    progress: True shows progress bars (stderr), False nothing; a callable is called as
+    ``progress(stage, done, total)`` (stages ``"fit"``: optimiser steps / output frames; ``"polish"``: L-BFGS chunks).
 
     init_joints_ned: (T, 17, 3) world NED, finite: the start at the grid times (e.g. a monocular
     reconstruction, where nothing can be triangulated); default: robust triangulation of the capture.
@@ -348,8 +352,9 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
         groups += [{"params": [gyro_bias], "lr": cfg.lr * 0.01}]
     opt = torch.optim.Adam(groups)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups], total_steps=cfg.iters, pct_start=0.15)
-    bar = tqdm(range(cfg.iters), desc="fit (product)", disable=not progress, leave=False)
+    bar = tqdm(range(cfg.iters), desc="fit (product)", disable=progress is not True, leave=False)
     for i in bar:
+        _report(progress, "fit", i, cfg.iters)
         # robust scale annealed from sigma_px_start to sigma_px_end over the first 60 % of the steps
         sig = cfg.sigma_px_end + (cfg.sigma_px_start - cfg.sigma_px_end) * max(0.0, 1 - i / (0.6 * cfg.iters))
         opt.zero_grad(set_to_none=True)
@@ -357,8 +362,9 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
         E.backward()
         opt.step()
         sched.step()
-        if progress and i % 25 == 0:
+        if progress is True and i % 25 == 0:
             bar.set_postfix(E=f"{E.item():.2f}")
+    _report(progress, "fit", cfg.iters, cfg.iters)
     if cfg.polish_iters > 0:
         lbfgs_polish(lambda: energy(cfg.sigma_px_end), [q for g in groups for q in g["params"]], cfg.polish_iters, progress)
     with torch.no_grad():
@@ -377,7 +383,12 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
     )  # fmt: skip
 
 
-def lbfgs_polish(energy_fn, params: list[torch.Tensor], iters: int, progress: bool = False, chunk: int = 50) -> float:
+def _report(progress, stage: str, done: int, total: int) -> None:
+    if callable(progress):
+        progress(stage, done, total)
+
+
+def lbfgs_polish(energy_fn, params: list[torch.Tensor], iters: int, progress: bool | Callable = False, chunk: int = 50) -> float:
     """Minimise ``energy_fn()`` (a scalar tensor of ``params``) with L-BFGS from the parameters' current values.
 
     ``iters`` iterations in chunks of ``chunk`` (one progress step each; the history carries over). Stops early when
@@ -395,8 +406,9 @@ def lbfgs_polish(energy_fn, params: list[torch.Tensor], iters: int, progress: bo
     with torch.no_grad():
         E_prev = float(energy_fn())
     n_chunks = -(-int(iters) // chunk)
-    bar = tqdm(range(n_chunks), desc="fit (L-BFGS)", disable=not progress, leave=False)
-    for _ in bar:
+    bar = tqdm(range(n_chunks), desc="fit (L-BFGS)", disable=progress is not True, leave=False)
+    for k in bar:
+        _report(progress, "polish", k, n_chunks)
         saved = [q.detach().clone() for q in params]
         opt.step(closure)
         with torch.no_grad():
@@ -408,10 +420,11 @@ def lbfgs_polish(energy_fn, params: list[torch.Tensor], iters: int, progress: bo
             break
         done = E > E_prev - 1e-6 * abs(E_prev)
         E_prev = E
-        if progress:
+        if progress is True:
             bar.set_postfix(E=f"{E:.3f}")
         if done:
             break
+    _report(progress, "polish", n_chunks, n_chunks)
     return E_prev
 
 
@@ -566,8 +579,9 @@ def _fit_paper(capture, t_grid, cfg, model, prior, progress, start, t_start) -> 
     s1, s2 = cfg.sigma1_px, cfg.sigma2
     out_X, out_ro, out_pose, out_tr, out_shape = [], [], [], [], []
     cam_idx, cam_t, T_ref, T_dr = [], [], [], []
-    it = tqdm(range(len(t_grid)), desc="fit (paper)", disable=not progress, leave=False)
+    it = tqdm(range(len(t_grid)), desc="fit (paper)", disable=progress is not True, leave=False)
     for ti in it:
+        _report(progress, "fit", ti, len(t_grid))
         t = t_grid[ti]
         uv = np.zeros((C, D, 17, 2))
         cf = np.zeros((C, D, 17))
@@ -619,6 +633,7 @@ def _fit_paper(capture, t_grid, cfg, model, prior, progress, start, t_start) -> 
                 Tm[:3, :3], Tm[:3, 3] = Rr[ci], p[ci].double().cpu().numpy()
                 T_ref.append(Tm)
         ro, pose, tr, shape = (v.detach() for v in (ro, pose, tr, shape))
+    _report(progress, "fit", len(t_grid), len(t_grid))
     return FitResult(
         t_ns=t_grid, joints_ned=np.array(out_X), root_orient=np.array(out_ro), pose=np.array(out_pose),
         transl=np.array(out_tr), shape=np.median(np.array(out_shape), 0), cam_index=np.array(cam_idx),

@@ -1,6 +1,7 @@
 """Flight folder -> the offline smoother -> ``refined_track.npz`` + ``refined_track.json`` (``skycap refine``).
 
-Reads every ``drone_<i>.mcap`` of a flight folder (:mod:`flightdata.flightlog`):
+Reads every drone of a flight folder (:class:`flightdata.folder.FlightFolder`, natural drone order): the whole
+flight (every sortie of a drone, in sortie order) or one chosen sortie (:mod:`flightdata.flightlog`):
 
 * the drone's own person detections: topic ``detections`` (what the tracking stage shared, with the camera
   pose covariance filled in) or, on flights without the tracking stage (orbit mode), ``sim/detections``
@@ -22,8 +23,11 @@ Every box is turned into a 3D measurement with :func:`onboard.tracking.measureme
     an upright segment of the prior height, projected with the refined camera pose) and ``<id>.roi_px``
     (F, 4: x, y, w, h, grown by the projected uncertainty as onboard; NaN where the person is out of view).
 ``refined_track.json``
-    counts, settings and, when ``truth.mcap`` is present (simulated flights), the evaluation
-    (:func:`evaluate`).
+    counts, settings, the recordings read (``sortie``, ``recordings``: per drone its files) and, when
+    ``truth.mcap`` is present (simulated flights), the evaluation (:func:`evaluate`).
+
+Library entry: :func:`refine_flight` (a flight and a :class:`RefineConfig` -> a :class:`RefineResult`); ``skycap
+refine`` (:mod:`reconstruction.track.cli`) is a thin layer over it.
 """
 
 from __future__ import annotations
@@ -33,19 +37,70 @@ import json
 import logging
 import math
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from flightdata.folder import FlightFolder
 from reconstruction.track.smoother import Observation, SmoothedTrack, SmootherConfig, SmootherError, smooth_track
 
-__all__ = ["DroneRecording", "read_recordings", "flight_observations", "refine_flight", "frame_boxes", "evaluate",
-           "load_refined_offsets", "format_evaluation", "REFINED_NPZ", "REFINED_JSON"]
+__all__ = ["DroneRecording", "RefineConfig", "RefineResult", "read_recordings", "flight_observations", "refine_flight",
+           "frame_boxes", "evaluate", "load_refined_offsets", "format_evaluation"]
 
 log = logging.getLogger(__name__)
 
-REFINED_NPZ = "refined_track.npz"
-REFINED_JSON = "refined_track.json"
+Progress = Callable[[str, int, int], None]
+
+MEASUREMENT_MODES = ("height_prior", "height_and_ground", "bearing", None)
+
+
+def _folder(flight: FlightFolder | str | Path) -> FlightFolder:
+    return flight if isinstance(flight, FlightFolder) else FlightFolder(flight)
+
+
+def _report(progress: Progress | None, stage: str, done: int, total: int) -> None:
+    if progress is not None:
+        progress(stage, done, total)
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineConfig:
+    """The offline smoother's settings (``skycap refine``).
+
+    smoother: :class:`reconstruction.track.smoother.SmootherConfig`; person_height_m: box height prior (None: the
+    flight's ``config.toml`` ``track.person_height_m``, else the onboard prior); camera_position_sigma_m: camera
+    position std for detections without pose covariance (None: from the flight's RTK/GPS setting, else 1 m);
+    min_score: detections below are left out; measurement_mode: box -> 3D model (None: the onboard default; see
+    :func:`flight_observations`).
+    """
+
+    smoother: SmootherConfig = dataclasses.field(default_factory=SmootherConfig)
+    person_height_m: float | None = None
+    camera_position_sigma_m: float | None = None
+    min_score: float = 0.5
+    measurement_mode: str | None = "height_prior"
+
+    def __post_init__(self) -> None:
+        if self.measurement_mode not in MEASUREMENT_MODES:
+            raise SmootherError(f"measurement_mode {self.measurement_mode!r} is unknown; use one of "
+                                f"{', '.join(str(m) for m in MEASUREMENT_MODES)} (None = the onboard default)")
+        if self.person_height_m is not None and not self.person_height_m > 0:
+            raise SmootherError(f"person_height_m={self.person_height_m} must be > 0 (or None for the flight's setting)")
+
+
+@dataclasses.dataclass
+class RefineResult:
+    """What :func:`refine_flight` returns: ``summary`` (what ``refined_track.json`` holds), ``arrays`` (what
+    ``refined_track.npz`` holds), the smoothed ``track``, the drones' ``recordings`` and the files written
+    (``paths``: {"npz", "json"}; empty when not written)."""
+
+    summary: dict
+    arrays: dict[str, np.ndarray]
+    track: SmoothedTrack
+    recordings: list[DroneRecording]
+    boxes: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
+    paths: dict[str, Path] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -54,7 +109,9 @@ class DroneRecording:
 
     detections: the drone's own Detections (time-ordered); state_t_ns (S,), state_position_ned_m (S, 3):
     its reported position; target_t_ns (T,), target_position_ned_m (T, 3): the live onboard estimate
-    (empty without the tracking stage); gt_boxes: frame_index -> (4,) true person box (simulator only).
+    (empty without the tracking stage);
+    gt_boxes: (sortie, frame_index) -> (4,) true person box (simulator only); detection_sorties (len(detections),):
+    the sortie of each detection (frame indices restart with each sortie); files: the recordings read.
     """
 
     drone_id: str
@@ -65,75 +122,85 @@ class DroneRecording:
     state_position_ned_m: np.ndarray
     target_t_ns: np.ndarray
     target_position_ned_m: np.ndarray
-    gt_boxes: dict[int, np.ndarray]
+    gt_boxes: dict[tuple[int, int], np.ndarray]
     land_t_ns: int | None
+    detection_sorties: np.ndarray | None = None
+    files: tuple[str, ...] = ()
+
+    def sorties_of_detections(self) -> np.ndarray:
+        """The sortie of each detection (all 1 when not recorded)."""
+        if self.detection_sorties is None:
+            return np.ones(len(self.detections), dtype=np.int64)
+        return self.detection_sorties
 
 
-def _drone_files(flight_dir: Path) -> list[Path]:
-    files = sorted(flight_dir.glob("drone_*.mcap"), key=lambda p: (len(p.stem), p.stem))
-    if not files:
-        raise SmootherError(f"{flight_dir} holds no drone_<i>.mcap files; pass a flight folder written by the onboard recorder")
-    return files
-
-
-def read_recordings(flight_dir: str | Path) -> list[DroneRecording]:
-    """Every drone of a flight folder -> :class:`DroneRecording` (drones without detections are left out)."""
+def read_recordings(flight: FlightFolder | str | Path, sortie: int | None = None,
+                    progress: Progress | None = None) -> list[DroneRecording]:
+    """Every drone of a flight folder (natural order) -> :class:`DroneRecording` (drones without detections are left
+    out): the whole flight (``sortie=None``: every sortie of a drone, in sortie order) or only sortie ``sortie``."""
     from flightdata.flightlog import FlightLog
     from skycap.camera import PinholeCamera
     from shared_msgs.messages import CameraInfo, Command, Detections, Keypoints2D, TargetEstimate, VehicleState
 
+    flight = _folder(flight)
+    logs = flight.drone_logs(sortie=sortie)
     out = []
-    for path in _drone_files(Path(flight_dir)):
-        d = path.stem
-        fl = FlightLog(path)
+    topics = ["detections", "sim/detections", "camera_info", "state", "target", "sim/keypoints2d_gt", "gcs/cmd"]
+    for di, (d, sorties) in enumerate(logs.items()):
+        name = ", ".join(s.path.name for s in sorties)
         dets = {"detections": [], "sim/detections": []}
         info = None
         st_t, st_p, tg_t, tg_p, gt = [], [], [], [], {}
         land = None
-        for m in fl.messages(["detections", "sim/detections", "camera_info", "state", "target", "sim/keypoints2d_gt", "gcs/cmd"]):
-            msg = m.msg
-            if isinstance(msg, Detections):
-                if msg.header.sender_id == d:
-                    dets[m.topic].append(msg)
-            elif isinstance(msg, CameraInfo):
-                info = msg
-            elif isinstance(msg, VehicleState):
-                st_t.append(msg.header.t_measurement_ns)
-                st_p.append(msg.position_ned_m)
-            elif isinstance(msg, TargetEstimate):
-                tg_t.append(msg.header.t_measurement_ns)
-                tg_p.append(msg.position_ned_m)
-            elif isinstance(msg, Keypoints2D):
-                if msg.persons and msg.persons[0].box is not None:
-                    b = msg.persons[0].box
-                    gt[msg.frame_index] = np.array([b.x_min_px, b.y_min_px, b.x_max_px, b.y_max_px])
-            elif isinstance(msg, Command) and msg.action == "land":
-                land = msg.header.t_sent_ns if land is None else min(land, msg.header.t_sent_ns)
+        for srt in sorties:
+            for m in FlightLog(srt.path).messages(topics):
+                msg = m.msg
+                if isinstance(msg, Detections):
+                    if msg.header.sender_id == d:
+                        dets[m.topic].append((srt.number, msg))
+                elif isinstance(msg, CameraInfo):
+                    info = msg
+                elif isinstance(msg, VehicleState):
+                    st_t.append(msg.header.t_measurement_ns)
+                    st_p.append(msg.position_ned_m)
+                elif isinstance(msg, TargetEstimate):
+                    tg_t.append(msg.header.t_measurement_ns)
+                    tg_p.append(msg.position_ned_m)
+                elif isinstance(msg, Keypoints2D):
+                    if msg.persons and msg.persons[0].box is not None:
+                        b = msg.persons[0].box
+                        gt[(srt.number, msg.frame_index)] = np.array([b.x_min_px, b.y_min_px, b.x_max_px, b.y_max_px])
+                elif isinstance(msg, Command) and msg.action == "land":
+                    land = msg.header.t_sent_ns if land is None else min(land, msg.header.t_sent_ns)
+        _report(progress, "read", di + 1, len(logs))
         topic = "detections" if dets["detections"] else "sim/detections"
         if not dets[topic]:
-            log.warning("%s: no person detections (topics 'detections' / 'sim/detections'): left out", path.name)
+            log.warning("%s: no person detections (topics 'detections' / 'sim/detections'): left out", name)
             continue
         if info is None:
-            raise SmootherError(f"{path}: no 'camera_info' messages; the camera intrinsics are needed")
+            raise SmootherError(f"{name}: no 'camera_info' messages; the camera intrinsics are needed")
         if not st_t:
-            raise SmootherError(f"{path}: no 'state' messages; the drone's reported position is needed")
+            raise SmootherError(f"{name}: no 'state' messages; the drone's reported position is needed")
         o = np.argsort(st_t, kind="stable")
         ot = np.argsort(tg_t, kind="stable")
+        det_sorted = sorted(dets[topic], key=lambda x: x[1].header.t_measurement_ns)
         out.append(DroneRecording(
             drone_id=d, intrinsics=PinholeCamera.from_camera_info(info),
-            detections=sorted(dets[topic], key=lambda x: x.header.t_measurement_ns), detections_topic=topic,
+            detections=[m for _, m in det_sorted], detections_topic=topic,
             state_t_ns=np.asarray(st_t, dtype=np.int64)[o], state_position_ned_m=np.asarray(st_p, dtype=float).reshape(-1, 3)[o],
             target_t_ns=np.asarray(tg_t, dtype=np.int64)[ot], target_position_ned_m=np.asarray(tg_p, dtype=float).reshape(-1, 3)[ot],
-            gt_boxes=gt, land_t_ns=land,
+            gt_boxes=gt, land_t_ns=land, detection_sorties=np.array([n for n, _ in det_sorted], dtype=np.int64),
+            files=tuple(s.path.name for s in sorties),
         ))  # fmt: skip
     if not out:
-        raise SmootherError(f"{flight_dir}: no drone recorded person detections; nothing to smooth")
+        raise SmootherError(f"{flight.path}: no drone recorded person detections ({flight.describe_logs(logs)}); "
+                            "nothing to smooth: record with the detector running, or choose another --sortie")
     return out
 
 
-def flight_settings(flight_dir: str | Path) -> dict:
+def flight_settings(flight: FlightFolder | str | Path) -> dict:
     """Person height prior and positioning grade from the flight's ``config.toml`` (the demo's), else {}."""
-    p = Path(flight_dir) / "config.toml"
+    p = _folder(flight).config_path
     if not p.is_file():
         return {}
     try:
@@ -213,7 +280,8 @@ def frame_boxes(track: SmoothedTrack, rec: DroneRecording, person_height_m: floa
     """Per detection frame of one drone: the smoothed person projected with the refined camera pose.
 
     Returns frame_index (F,), frame_t_ns (F,), box_px (F, 4) x_min, y_min, x_max, y_max and roi_px (F, 4)
-    x, y, w, h (NaN rows where the person is behind the camera or outside the image, or outside the span).
+    x, y, w, h (NaN rows where the person is behind the camera or outside the image, or outside the span), and
+    frame_sortie (F,): the sortie of each frame (frame indices restart with each sortie).
     """
     from onboard.tracking.measurement import box_from_person
     from onboard.tracking.roi import RoiConfig, roi_from_estimate
@@ -239,25 +307,31 @@ def frame_boxes(track: SmoothedTrack, rec: DroneRecording, person_height_m: floa
                 continue
             roi[j] = r
             box[j] = box_from_person(p[j], rec.intrinsics, T, person_height_m, rcfg.aspect_w_over_h)[0]
-    return {"frame_index": fi, "frame_t_ns": ft, "box_px": box, "roi_px": roi}
+    return {"frame_index": fi, "frame_t_ns": ft, "box_px": box, "roi_px": roi, "frame_sortie": rec.sorties_of_detections()}
 
 
-def refine_flight(flight_dir: str | Path, config: SmootherConfig = SmootherConfig(), person_height_m: float | None = None,
-                  camera_position_sigma_m: float | None = None, min_score: float = 0.5, measurement_mode: str | None = "height_prior",
-                  write: bool = True) -> dict:
-    """Smooth a recorded flight; writes ``refined_track.npz`` / ``.json`` (see the module doc) and returns the
-    JSON dict (with ``evaluation`` when the flight has ``truth.mcap``)."""
-    flight_dir = Path(flight_dir)
-    settings = flight_settings(flight_dir)
-    H = person_height_m if person_height_m is not None else settings.get("person_height_m")
+def refine_recordings(recs: list[DroneRecording], config: RefineConfig | None = None, *,
+                      progress: Progress | None = None) -> RefineResult:
+    """The offline smoother over drone recordings (:func:`read_recordings`): all drones' detections -> the smoothed
+    person track, the drones' position offsets and the per-frame boxes/ROIs. ``config.person_height_m`` /
+    ``camera_position_sigma_m`` left None take the onboard prior / 1 m (:func:`refine_flight` fills them from the
+    flight's settings first). progress: ``("measurements", d, D)`` per drone, ``("smooth", 0|1, 1)``,
+    ``("boxes", d, D)``. Writes nothing; ``summary`` has no flight-level fields (``flight_dir``, ``evaluation``)."""
     from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M
 
-    H = float(H) if H is not None else PERSON_HEIGHT_PRIOR_M
-    sig = camera_position_sigma_m if camera_position_sigma_m is not None else settings.get("camera_position_sigma_m", 1.0)
-    recs = read_recordings(flight_dir)
-    obs, offset_sigma = flight_observations(recs, H, sig, min_score=min_score, measurement_mode=measurement_mode)
+    config = config or RefineConfig()
+    H = float(config.person_height_m) if config.person_height_m is not None else PERSON_HEIGHT_PRIOR_M
+    sig = config.camera_position_sigma_m if config.camera_position_sigma_m is not None else 1.0
+    obs, offset_sigma = [], np.zeros((len(recs), 3))
+    for di, r in enumerate(recs):  # one drone at a time, for the progress (flight_observations is per drone)
+        o, s = flight_observations([r], H, sig, min_score=config.min_score, measurement_mode=config.measurement_mode)
+        obs += [dataclasses.replace(x, drone=di) for x in o]
+        offset_sigma[di] = s[0]
+        _report(progress, "measurements", di + 1, len(recs))
     ids = [r.drone_id for r in recs]
-    track = smooth_track(obs, ids, config, offset_sigma_m=offset_sigma)
+    _report(progress, "smooth", 0, 1)
+    track = smooth_track(obs, ids, config.smoother, offset_sigma_m=offset_sigma)
+    _report(progress, "smooth", 1, 1)
     arrays: dict[str, np.ndarray] = {
         "drone_ids": np.array(ids), "t_ns": track.t_ns, "position_ned_m": track.position_ned_m,
         "velocity_ned_m_s": track.velocity_ned_m_s, "covariance": track.covariance, "offset_ned_m": track.offset_ned_m,
@@ -269,15 +343,15 @@ def refine_flight(flight_dir: str | Path, config: SmootherConfig = SmootherConfi
         arrays[f"{r.drone_id}.position_reported_ned_m"] = r.state_position_ned_m
         arrays[f"{r.drone_id}.position_refined_ned_m"] = r.state_position_ned_m - track.offset_at(di, r.state_t_ns)
         boxes[r.drone_id] = frame_boxes(track, r, H)
-        for k, v in boxes[r.drone_id].items():
-            arrays[f"{r.drone_id}.{k}"] = v
+        for k in ("frame_index", "frame_t_ns", "box_px", "roi_px"):
+            arrays[f"{r.drone_id}.{k}"] = boxes[r.drone_id][k]
+        _report(progress, "boxes", di + 1, len(recs))
     acc = track.accepted
     summary = {
-        "flight_dir": str(flight_dir),
         "drones": ids,
         "detections_topic": {r.drone_id: r.detections_topic for r in recs},
         "person_height_m": H,
-        "measurement_mode": measurement_mode or "onboard default",
+        "measurement_mode": config.measurement_mode or "onboard default",
         "camera_position_sigma_m": sig,
         "offset_prior_sigma_m": {d: [round(float(v), 4) for v in track.offset_sigma_m[i]] for i, d in enumerate(ids)},
         "measurements": len(obs),
@@ -288,16 +362,41 @@ def refine_flight(flight_dir: str | Path, config: SmootherConfig = SmootherConfi
         "reweighting_passes": track.iterations,
         "span_s": round(float((track.t_ns[-1] - track.t_ns[0]) * 1e-9), 3),
         "offset_mean_ned_m": {d: [round(float(v), 3) for v in track.offset_ned_m[:, i].mean(axis=0)] for i, d in enumerate(ids)},
-        "config": dataclasses.asdict(config),
+        "config": dataclasses.asdict(config.smoother),
     }
-    truth = flight_dir / "truth.mcap"
-    if truth.is_file():
-        summary["evaluation"] = evaluate(flight_dir, track, recs, boxes)
+    return RefineResult(summary=summary, arrays=arrays, track=track, recordings=recs, boxes=boxes)
+
+
+def refine_flight(flight: FlightFolder | str | Path, config: RefineConfig | None = None, *, sortie: int | None = None,
+                  write: bool = True, progress: Progress | None = None) -> RefineResult:
+    """Smooth a recorded flight (a :class:`FlightFolder` or its path): the whole flight (``sortie=None``: every
+    sortie of each drone, in order) or one sortie. ``config`` fields left None are taken from the flight's
+    ``config.toml`` (:func:`flight_settings`). With ``write``, writes ``refined_track.npz`` / ``.json`` (see the module
+    doc). The summary names the recordings read (``sortie``, ``recordings``) and holds the ``evaluation`` when the
+    flight has ``truth.mcap``. progress: as :func:`refine_recordings`, after ``("read", d, D)`` per drone."""
+    flight = _folder(flight)
+    config = config or RefineConfig()
+    settings = flight_settings(flight)
+    fill = {k: settings[k] for k in ("person_height_m", "camera_position_sigma_m")
+            if getattr(config, k) is None and settings.get(k) is not None}
+    config = dataclasses.replace(config, **fill) if fill else config
+    recs = read_recordings(flight, sortie=sortie, progress=progress)
+    used = {r.drone_id: list(r.files) for r in recs}
+    log.info("refining %s of %s: %s", "the whole flight" if sortie is None else f"sortie {sortie}", flight.path,
+             "; ".join(f"{d}: {', '.join(f)}" for d, f in used.items()))
+    res = refine_recordings(recs, config, progress=progress)
+    summary = {"flight_dir": str(flight.path), **res.summary, "sortie": sortie, "recordings": used}
+    if flight.truth_path.is_file():
+        _report(progress, "evaluate", 0, 1)
+        summary["evaluation"] = evaluate(flight, res.track, recs, res.boxes)
+        _report(progress, "evaluate", 1, 1)
+    res.summary = summary
     if write:
-        np.savez_compressed(flight_dir / REFINED_NPZ, **arrays)
-        (flight_dir / REFINED_JSON).write_text(json.dumps(summary, indent=2, default=_json_default))
-        log.info("wrote %s and %s", flight_dir / REFINED_NPZ, flight_dir / REFINED_JSON)
-    return summary
+        np.savez_compressed(flight.refined_npz_path, **res.arrays)
+        flight.refined_json_path.write_text(json.dumps(summary, indent=2, default=_json_default))
+        res.paths = {"npz": flight.refined_npz_path, "json": flight.refined_json_path}
+        log.info("wrote %s and %s", flight.refined_npz_path, flight.refined_json_path)
+    return res
 
 
 def _json_default(o):
@@ -310,12 +409,13 @@ def _json_default(o):
     raise TypeError(type(o).__name__)
 
 
-def load_refined_offsets(flight_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def load_refined_offsets(flight: FlightFolder | str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """``refined_track.npz`` -> {drone id: (t_ns (N,), offset_ned_m (N, 3))}: what to subtract from the drone's
-    reported positions (see :func:`reconstruction.multiview.flight.read_flight`, ``use_refined_poses``)."""
-    p = Path(flight_dir) / REFINED_NPZ
+    reported positions (see :func:`reconstruction.flight.read_capture`, ``use_refined_poses``)."""
+    flight = _folder(flight)
+    p = flight.refined_npz_path
     if not p.is_file():
-        raise SmootherError(f"{p} does not exist: run `skycap refine {flight_dir}` first")
+        raise SmootherError(f"{p} does not exist: run `skycap refine {flight.path}` first")
     z = np.load(p)
     ids = [str(s) for s in z["drone_ids"]]
     return {d: (z["t_ns"], z["offset_ned_m"][:, i]) for i, d in enumerate(ids)}
@@ -342,14 +442,11 @@ def _rms3(e: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(e**2, axis=-1)))) if len(e) else math.nan
 
 
-def _window_ns(flight_dir: Path, recs: list[DroneRecording], t_truth_end: int, settle_s: float) -> tuple[int, int]:
+def _window_ns(flight: FlightFolder, recs: list[DroneRecording], t_truth_end: int, settle_s: float) -> tuple[int, int]:
     """Steady window as the flight summary uses it: plan start + settle_s to the first land command."""
-    from flightdata.folder import load_plan
-
-    plan_p = flight_dir / "plan.json"
     t0 = None
-    if plan_p.is_file():
-        t0 = load_plan(plan_p).start_time_ns + int(settle_s * 1e9)
+    if flight.plan_path.is_file():
+        t0 = flight.plan().start_time_ns + int(settle_s * 1e9)
     lands = [r.land_t_ns for r in recs if r.land_t_ns is not None]
     t1 = min(min(lands) if lands else t_truth_end, t_truth_end)
     if t0 is None:
@@ -357,7 +454,7 @@ def _window_ns(flight_dir: Path, recs: list[DroneRecording], t_truth_end: int, s
     return int(t0), int(t1)
 
 
-def evaluate(flight_dir: str | Path, track: SmoothedTrack, recs: list[DroneRecording], boxes: dict[str, dict],
+def evaluate(flight: FlightFolder | str | Path, track: SmoothedTrack, recs: list[DroneRecording], boxes: dict[str, dict],
              settle_s: float = 8.0) -> dict:
     """The smoother against the simulator truth, beside the live onboard figures, over the steady window.
 
@@ -374,13 +471,13 @@ def evaluate(flight_dir: str | Path, track: SmoothedTrack, recs: list[DroneRecor
     """
     from onboard.tracking.roi import box_in_roi
 
-    flight_dir = Path(flight_dir)
+    flight = _folder(flight)
     ids = track.drone_ids
     rec_by = {r.drone_id: r for r in recs}
-    tt, person, veh = _read_truth(flight_dir / "truth.mcap", ids)
-    t0, t1 = _window_ns(flight_dir, recs, int(tt[-1]), settle_s)
+    tt, person, veh = _read_truth(flight.truth_path, ids)
+    t0, t1 = _window_ns(flight, recs, int(tt[-1]), settle_s)
     if t1 <= t0:
-        raise SmootherError(f"{flight_dir}: no steady window (plan start + {settle_s} s to the land command)")
+        raise SmootherError(f"{flight.path}: no steady window (plan start + {settle_s} s to the land command)")
 
     # common bias (reported positions), as evaluation.flight defines it
     rep_err, ref_err = [], []
@@ -422,9 +519,9 @@ def evaluate(flight_dir: str | Path, track: SmoothedTrack, recs: list[DroneRecor
         b = boxes[d]
         fsel = (b["frame_t_ns"] >= t0) & (b["frame_t_ns"] <= t1)
         hit_s, hit_l, ious = [], [], []
-        live_roi = {m.frame_index: m.roi_px for m in r.detections}
+        live_roi = {(int(n), m.frame_index): m.roi_px for n, m in zip(r.sorties_of_detections(), r.detections)}
         for j in np.flatnonzero(fsel):
-            f = int(b["frame_index"][j])
+            f = (int(b["frame_sortie"][j]), int(b["frame_index"][j]))
             gt = r.gt_boxes.get(f)
             if gt is None:
                 continue

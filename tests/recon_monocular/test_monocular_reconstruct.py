@@ -1,4 +1,4 @@
-"""``reconstruct_capture``: one drone's synthetic capture -> world-frame motion written by the shared exporters."""
+"""The monocular method (``reconstruction.monocular.reconstruct.run``): one drone's synthetic capture -> world-frame motion written by the shared exporters."""
 
 from __future__ import annotations
 
@@ -9,14 +9,14 @@ import pytest
 
 from reconstruction.capture import CaptureError
 from reconstruction.metrics import pa_mpjpe_mm
-from reconstruction.monocular.reconstruct import reconstruct_capture
+from reconstruction.monocular.reconstruct import MonocularRunConfig, run
 from reconstruction.synth import SynthConfig, interpolate_joints, synthesize_capture
 from skycap.bvh import read_bvh
 from skycap.skeleton import mocap_to_coco17
 
 
 @pytest.mark.shared_data
-def test_reconstruct_capture_writes_world_motion(cmu_dir, tmp_path):
+def test_run_writes_world_motion(cmu_dir, tmp_path):
     m = read_bvh(cmu_dir / "002" / "002_05.bvh").slice(1, 1 + 4 * 120, 1)
     J = mocap_to_coco17(m)
     t_ns = (np.arange(len(J)) * m.frame_time_s * 1e9).astype(np.int64)
@@ -24,7 +24,7 @@ def test_reconstruct_capture_writes_world_motion(cmu_dir, tmp_path):
                      camera_pos_noise_m=0.0, camera_rot_noise_deg=1.0, swap_rate=0.0)  # fmt: skip
     cap, truth = synthesize_capture(J, t_ns, sc, seed=1)
     out = tmp_path / "rec"
-    summary = reconstruct_capture(cap, out, rrd=False)
+    summary = run(cap, MonocularRunConfig(rrd=False), out_dir=out).summary
     for k in ("bvh", "npz", "csv"):
         assert (out / f"motion.{k}").is_file()
     assert json.loads((out / "summary.json").read_text())["frames"] == cap.cameras[0].num_frames
@@ -40,20 +40,20 @@ def test_reconstruct_capture_writes_world_motion(cmu_dir, tmp_path):
     assert summary["variant"] == "perspective"
 
 
-def test_reconstruct_capture_rejects_unknown_camera(tmp_path):
+def test_run_rejects_unknown_camera(tmp_path):
     t = np.arange(30) * 33_000_000
     J = np.zeros((30, 17, 3))
     J[:, :, 2] = -np.linspace(0.1, 1.7, 17)
     J[:, :, 1] = np.linspace(-0.2, 0.2, 17)
     cap, _ = synthesize_capture(J, t, SynthConfig(drones=1), seed=0)
     with pytest.raises(CaptureError, match="not in the capture"):
-        reconstruct_capture(cap, tmp_path / "o", camera="drone_7")
+        run(cap, MonocularRunConfig(camera="drone_7"), out_dir=tmp_path / "o")
 
 
 def _write_orbit_flight(tmp_path, J, t_ns, radius_m=4.0, omega_deg_s=40.0, noise_px=2.0):
     """One drone orbiting the person, recorded with the real flight recorder (MCAP): state, camera_info
     (gimbal pitch aimed at the hips) and noisy simulated keypoints."""
-    from flightdata.recorder import Recorder, drone_log_path
+    from flightdata.recorder import Recorder
     from shared_msgs.messages import CameraInfo, Header, Keypoints2D, PersonKeypoints, VehicleState
     from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose, intrinsics_matrix, project_points
 
@@ -64,7 +64,7 @@ def _write_orbit_flight(tmp_path, J, t_ns, radius_m=4.0, omega_deg_s=40.0, noise
     t_s = (t_ns - t_ns[0]) * 1e-9
     ang = np.radians(omega_deg_s) * t_s
     pos = np.stack([centre[:, 0] + radius_m * np.cos(ang), centre[:, 1] + radius_m * np.sin(ang), np.full(len(t_s), -2.5)], 1)
-    with Recorder(drone_log_path(tmp_path, "drone_0"), node_id="drone_0") as rec:
+    with Recorder.new_sortie(tmp_path, "drone_0") as rec:
         for f, t in enumerate(t_ns):
             d = centre[f] - pos[f]
             yaw = float(np.arctan2(d[1], d[0]))

@@ -1,4 +1,4 @@
-"""World placement of the monocular flight path (``reconstruct_capture``) on a demo-like single-drone flight.
+"""World placement of the monocular flight path (``reconstruction.monocular.reconstruct.run``) on a demo-like single-drone flight.
 
 The simulated demo flight (``skycap demo --drones 1``) is far harder than the eval harness: the camera is 9 m
 away with a 640x360 image (f = 457 px), so the person's RMS image radius is ~24 px with ~5 px of detector
@@ -25,7 +25,7 @@ from reconstruction.monocular.perspective import (
     perspective_bundle_adjust,
     robust_depth_track,
 )
-from reconstruction.monocular.reconstruct import reconstruct_capture
+from reconstruction.monocular.reconstruct import MonocularRunConfig, run
 from reconstruction.monocular.tracks import temporal_outlier_mask, track_noise_px
 from reconstruction.synth import SynthConfig, interpolate_joints, synthesize_capture
 from skycap.bvh import read_bvh
@@ -61,7 +61,7 @@ def demo_like(cmu_dir, tmp_path_factory):
     t_ns = (np.arange(len(J)) * m.frame_time_s * 1e9).astype(np.int64)
     cap, truth = _demo_like_capture(J, t_ns)
     out = tmp_path_factory.mktemp("mono_world")
-    summary = reconstruct_capture(cap, out, rrd=False)
+    summary = run(cap, MonocularRunConfig(rrd=False), out_dir=out).summary
     z = np.load(out / "motion.npz")
     gt = interpolate_joints(truth.t_ns, truth.joints_ned, z["t_ns"])
     return cap, z["joints_ned"], gt, summary

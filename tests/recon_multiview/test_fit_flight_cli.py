@@ -72,7 +72,7 @@ def test_paper_fit_runs_per_frame(walker_capture):
 
 def _write_flight(tmp_path, J, t_ns):
     """Three hovering drones looking at the walker, recorded with the real flight recorder (MCAP)."""
-    from flightdata.recorder import Recorder, drone_log_path
+    from flightdata.recorder import Recorder
     from shared_msgs.messages import CameraInfo, Header, Keypoints2D, PersonKeypoints, VehicleState
 
     K = intrinsics_matrix(1200.0, 1200.0, 640.0, 360.0)
@@ -88,7 +88,7 @@ def _write_flight(tmp_path, J, t_ns):
         Tc = T_world_cam_from_pose(pos, R_world_body_from_euler(0, 0, yaw), pitch, 0.0)
         truth.append(Tc)
         hdr = lambda t, s=f"drone_{i}": Header(schema_version=1, sender_id=s, t_measurement_ns=int(t), t_sent_ns=int(t))  # noqa: E731
-        with Recorder(drone_log_path(tmp_path, f"drone_{i}"), node_id=f"drone_{i}") as rec:
+        with Recorder.new_sortie(tmp_path, f"drone_{i}") as rec:
             rec.record_message("camera_info", CameraInfo(header=hdr(t_ns[0]), camera_id="cam0", width_px=1280, height_px=720,
                                fx_px=1200.0, fy_px=1200.0, cx_px=640.0, cy_px=360.0, gimbal_pitch_rad=float(pitch)))  # fmt: skip
             for t in np.arange(t_ns[0], t_ns[-1] + 1, 20_000_000):

@@ -1,0 +1,175 @@
+"""Flight folders from the onboard recorder -> :class:`reconstruction.capture.Capture`: the reader every
+reconstruction method uses (:func:`read_capture`).
+
+A flight folder (:class:`flightdata.folder.FlightFolder`, the one owner of its layout) holds per drone one MCAP
+per sortie (``<drone_id>.s<NNN>.mcap``; :mod:`flightdata.recorder`; messages of :mod:`shared_msgs.messages`,
+read with :mod:`flightdata.flightlog`). The reader takes the drones in natural order (``drone_2`` before
+``drone_10``) and either the whole flight (every sortie of a drone, chained in sortie order into one camera)
+or one chosen sortie, and says which files it used (``Capture.meta["recordings"]``, logged). Topics used per
+drone:
+
+* ``state`` (:class:`VehicleState`): the drone's own pose estimate at ``header.t_measurement_ns``,
+  with diagonal position/attitude covariances -> camera pose uncertainty;
+* ``camera_info`` (:class:`CameraInfo`): intrinsics (timestamped) and the gimbal angles;
+* ``keypoints2d`` (:class:`Keypoints2D`, a real detector) -- or, when a drone has none,
+  ``sim/keypoints2d`` (the simulator's noisy projections). One detector per ``detector`` name; the
+  person with the highest mean confidence in each message.
+
+Camera pose: ``T_world_cam = T_world_cam_from_pose(position, R_yaw, gimbal_pitch, gimbal_yaw)`` with
+the gimbal angles and the mount's lever arm (translation of ``T_body_cam``) of the latest ``camera_info``;
+the gimbal is taken to stabilise roll and pitch
+(``R_yaw`` = the vehicle's yaw only), as :func:`skycap.frames.T_world_cam_from_pose` documents; pass
+``gimbal_stabilised=False`` for a camera fixed to the body.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from reconstruction.capture import CameraCapture, Capture, CaptureError
+from skycap.frames import T_world_cam_from_pose, intrinsics_matrix
+
+log = logging.getLogger(__name__)
+
+__all__ = ["read_capture", "read_drone_log", "recordings_summary"]
+
+
+def _yaw_only(R: np.ndarray) -> np.ndarray:
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: bool = True,
+                   position_offset: tuple[np.ndarray, np.ndarray] | None = None, name: str | None = None) -> CameraCapture:
+    """One drone's recording(s) -> its :class:`CameraCapture` (see the module docstring).
+
+    paths: one MCAP file or the drone's sorties in sortie order (read as one log, :class:`SortieLogs`);
+    name: the camera's name (default: the drone id the first file names, ``drone_1.s002.mcap`` -> ``drone_1``).
+    position_offset: optional (t_ns (N,), offset_ned_m (N, 3)) subtracted from the reported positions
+    (interpolated, held at the ends): the offline smoother's estimate of the drone's GPS offset.
+    """
+    from flightdata.flightlog import SortieLogs
+    from shared_msgs.messages import CameraInfo, Keypoints2D, VehicleState
+
+    paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
+    flog = SortieLogs(paths)
+    path = ", ".join(str(p) for p in paths)  # for the messages
+    states = flog.read_topic("state", VehicleState)
+    infos = flog.read_topic("camera_info", CameraInfo)
+    kps = flog.read_topic("keypoints2d", Keypoints2D)
+    if not kps:
+        kps = flog.read_topic("sim/keypoints2d", Keypoints2D)
+    name = name or paths[0].name.split(".")[0]
+    if not states:
+        raise CaptureError(f"{path}: no 'state' messages; the drone's pose is needed for every camera")
+    if not infos:
+        raise CaptureError(f"{path}: no 'camera_info' messages; the camera intrinsics are needed")
+    if not kps:
+        raise CaptureError(f"{path}: no 'keypoints2d' or 'sim/keypoints2d' messages; run a 2D detector on the flight first")
+    infos = sorted(infos, key=lambda m: m.header.t_measurement_ns)
+    t_info = np.array([m.header.t_measurement_ns for m in infos], dtype=np.int64)
+    K = np.stack([intrinsics_matrix(m.fx_px, m.fy_px, m.cx_px, m.cy_px) for m in infos])
+    states = sorted(states, key=lambda m: m.header.t_measurement_ns)
+    t_pose, T_list, ps, rs, vel, vs = [], [], [], [], [], []
+    for s in states:
+        t = s.header.t_measurement_ns
+        if t_pose and t <= t_pose[-1]:
+            continue
+        i = int(np.clip(np.searchsorted(t_info, t, side="right") - 1, 0, len(infos) - 1))
+        w, x, y, z = s.q_world_body
+        R = Rotation.from_quat([x, y, z, w]).as_matrix()
+        lever = np.asarray(infos[i].T_body_cam, dtype=float).reshape(4, 4)[:3, 3] if len(infos[i].T_body_cam) == 16 else None
+        pos = np.array(s.position_ned_m)
+        if position_offset is not None:
+            pos = pos - np.array([np.interp(t, position_offset[0], position_offset[1][:, k]) for k in range(3)])
+        T_list.append(T_world_cam_from_pose(pos, _yaw_only(R) if gimbal_stabilised else R,
+                                            infos[i].gimbal_pitch_rad, infos[i].gimbal_yaw_rad, lever))  # fmt: skip
+        t_pose.append(t)
+        ps.append(float(np.sqrt(np.sum(s.position_cov_m2))))
+        rs.append(float(np.degrees(np.sqrt(np.sum(s.attitude_cov_rad2)))))
+        # the camera moves with the body (the lever arm's rotational velocity, centimetres per second, is left out)
+        vel.append(s.velocity_ned_m_s)
+        vs.append(float(np.sqrt(np.sum(s.velocity_cov_m2_s2))))
+    detectors = sorted({m.detector for m in kps})
+    frames = sorted({m.header.t_measurement_ns for m in kps})
+    fidx = {t: i for i, t in enumerate(frames)}
+    D, F = len(detectors), len(frames)
+    uv = np.zeros((F, D, 17, 2))
+    conf = np.zeros((F, D, 17))
+    for m in kps:
+        if not m.persons:
+            continue
+        best = max(m.persons, key=lambda p: float(np.mean(p.confidence)))
+        f, d = fidx[m.header.t_measurement_ns], detectors.index(m.detector)
+        uv[f, d] = np.asarray(best.keypoints_px, dtype=float).reshape(17, 2)
+        conf[f, d] = np.asarray(best.confidence, dtype=float)
+    vel_a, vs_a = np.asarray(vel, dtype=float), np.asarray(vs, dtype=float)
+    if not (np.all(np.isfinite(vel_a)) and np.all(np.isfinite(vs_a)) and np.all(vs_a > 0)):
+        log.warning("%s: some 'state' velocities are NaN or have no variance; fitting without this drone's velocities", path)
+        vel_a, vs_a = None, None
+    return CameraCapture(
+        vel_world_mps=vel_a, vel_sigma_mps=vs_a,
+        name=name, t_pose_ns=np.array(t_pose), T_world_cam=np.stack(T_list), pos_sigma_m=np.array(ps),
+        rot_sigma_deg=np.array(rs), t_intrinsics_ns=t_info, K=K, width_px=infos[-1].width_px,
+        height_px=infos[-1].height_px, t_frame_ns=np.array(frames, dtype=np.int64), keypoints_px=uv,
+        confidence=conf, detectors=tuple(detectors),
+    )  # fmt: skip
+
+
+def read_capture(flight, *, sortie: int | None = None, drone_ids: Iterable[str] | None = None,
+                 gimbal_stabilised: bool = True, use_refined_poses: bool = False, min_cameras: int = 1,
+                 progress=None) -> Capture:
+    """The drones of a flight folder -> a :class:`Capture`, one camera per drone in natural order.
+
+    flight: a :class:`FlightFolder` or its path. sortie: None reads the whole flight (every sortie of a drone,
+    chained in sortie order), N only sortie N of each drone that flew it. drone_ids: only these drones (default
+    all). Drones without keypoints are skipped with a warning; fewer than ``min_cameras`` cameras left is a
+    :class:`CaptureError`. ``meta["recordings"]``: per camera the file names read; ``meta["sortie"]``: ``sortie``.
+    use_refined_poses: subtract the offline smoother's drone position offsets (``refined_track.npz``, written by
+    ``skycap refine``) from the reported positions. progress: ``progress("read", done, total)`` per drone.
+    """
+    from flightdata.folder import FlightFolder
+
+    flight = flight if isinstance(flight, FlightFolder) else FlightFolder(flight)
+    logs = flight.drone_logs(sortie=sortie, drone_ids=drone_ids)
+    offsets = {}
+    if use_refined_poses:
+        from reconstruction.track.flight import load_refined_offsets
+
+        offsets = load_refined_offsets(flight)
+    cams, used = [], {}
+    for i, (d, sorties) in enumerate(logs.items()):
+        try:
+            cams.append(read_drone_log([s.path for s in sorties], gimbal_stabilised, offsets.get(d), name=d))
+            used[d] = sorties
+        except CaptureError as e:
+            log.warning("skipping %s: %s", d, e)
+        if progress is not None:
+            progress("read", i + 1, len(logs))
+    if len(cams) < min_cameras:
+        raise CaptureError(f"{flight.path}: {len(cams)} drone(s) with keypoints (of {flight.describe_logs(logs)}); this "
+                           f"reconstruction needs at least {min_cameras}: run a 2D detector on the flight, choose another "
+                           f"--sortie or another method")
+    what = "the whole flight" if sortie is None else f"sortie {sortie}"
+    log.info("read %s of %s: %s", what, flight.path, flight.describe_logs(used) or "nothing")
+    meta = {"source": "flight", "flight_dir": str(flight.path), "sortie": sortie,
+            "recordings": flight.recording_names(used), "recordings_used": flight.describe_logs(used)}
+    return Capture(cams, meta=meta)
+
+
+def recordings_summary(capture: Capture, cameras: Iterable[str] | None = None) -> dict:
+    """``{"sortie": N | None, "recordings": {drone: [file names]}}`` of a capture read by :func:`read_capture` (of
+    ``cameras`` only, when given), for a reconstruction's summary; {} for captures of other sources."""
+    rec = capture.meta.get("recordings")
+    if rec is None:
+        return {}
+    if cameras is not None:
+        keep = set(cameras)
+        rec = {k: v for k, v in rec.items() if k in keep}
+    return {"sortie": capture.meta.get("sortie"), "recordings": rec}
