@@ -28,7 +28,7 @@ COMMAND_MODULES = (
     "groundstation.cli",
     "reconstruction.cli",
     "reconstruction.keypoints.cli",
-    "reconstruction.track.cli",
+    "apps.refine",
 )
 
 log = logging.getLogger("skycap")

@@ -42,7 +42,14 @@ from typing import Any
 
 import numpy as np
 
-from skycap.errors import SkycapError
+from flightdata.folder import FlightFolder
+from reconstruction.monocular.reconstruct import MonocularRunConfig
+from reconstruction.monocular.reconstruct import read_capture as read_monocular_capture
+from reconstruction.monocular.reconstruct import run as run_monocular
+from reconstruction.multiview.run import MultiviewConfig
+from reconstruction.multiview.run import read_capture as read_multiview_capture
+from reconstruction.multiview.run import run as run_multiview
+from reconstruction.result import Progress, ReconstructionError, ReconstructionResult, report
 
 log = logging.getLogger(__name__)
 
@@ -51,53 +58,17 @@ __all__ = ["METHODS", "Progress", "ReconstructionError", "ReconstructionResult",
 
 METHODS = ("multiview", "monocular")
 
-Progress = Callable[[str, int, int], None]
-"""``progress(stage, done, total)``: ``done`` of ``total`` steps of ``stage`` are finished."""
-
-
-class ReconstructionError(SkycapError):
-    """A reconstruction that cannot run as asked (unknown method, a config that does not fit the method)."""
-
-
-def report(progress: Progress | None, stage: str, done: int, total: int) -> None:
-    """Call ``progress`` when there is one."""
-    if progress is not None:
-        progress(stage, int(done), int(total))
-
-
-@dataclasses.dataclass
-class ReconstructionResult:
-    """What a reconstruction method returns.
-
-    joints_ned (T, 17, 3) world NED at t_ns (T,); summary: the figures (what ``summary.json`` holds); out_dir and
-    outputs ({"bvh", "npz", "csv", "rrd"} -> path): where the files were written (None / {} when not written).
-    """
-
-    method: str
-    t_ns: np.ndarray
-    joints_ned: np.ndarray
-    summary: dict[str, Any]
-    out_dir: Path | None = None
-    outputs: dict[str, Path] = dataclasses.field(default_factory=dict)
-
-
 def default_config(method: str) -> Any:
     """The default config of ``method`` (:data:`METHODS`)."""
     if method == "multiview":
-        from reconstruction.multiview.run import MultiviewConfig
-
         return MultiviewConfig()
     if method == "monocular":
-        from reconstruction.monocular.reconstruct import MonocularRunConfig
-
         return MonocularRunConfig()
     raise ReconstructionError(f"unknown reconstruction method {method!r}; use one of {', '.join(METHODS)}")
 
 
 def choose_method(flight, sortie: int | None = None) -> str:
     """The default method for a flight: multiview with more than one drone (in ``sortie``, when given), else monocular."""
-    from flightdata.folder import FlightFolder
-
     flight = flight if isinstance(flight, FlightFolder) else FlightFolder(flight)
     return "multiview" if len(flight.drone_logs(sortie=sortie)) > 1 else "monocular"
 
@@ -111,22 +82,18 @@ def reconstruct_flight(flight, method: str | None = None, config: Any = None, *,
     method's folder, :meth:`FlightFolder.reconstruction_dir`) the motion (BVH/NPZ/CSV/RRD), ``config.toml`` and
     ``summary.json`` (with ``recordings``: per drone the files read, and ``sortie``). Returns the method's result.
     """
-    from flightdata.folder import FlightFolder
-
     flight = flight if isinstance(flight, FlightFolder) else FlightFolder(flight)
     method = method or choose_method(flight, sortie)
     config = default_config(method) if config is None else config
     out = Path(out_dir) if out_dir is not None else flight.reconstruction_dir(method)
     if method == "multiview":
-        from reconstruction.multiview.run import MultiviewConfig, read_capture, run
-
         _check_config(config, MultiviewConfig, method)
-        cap = read_capture(flight, config, sortie=sortie, progress=progress)
+        cap = read_multiview_capture(flight, config, sortie=sortie, progress=progress)
+        run = run_multiview
     elif method == "monocular":
-        from reconstruction.monocular.reconstruct import MonocularRunConfig, read_capture, run
-
         _check_config(config, MonocularRunConfig, method)
-        cap = read_capture(flight, config, sortie=sortie, progress=progress)
+        cap = read_monocular_capture(flight, config, sortie=sortie, progress=progress)
+        run = run_monocular
     else:
         raise ReconstructionError(f"unknown reconstruction method {method!r}; use one of {', '.join(METHODS)}")
     log.info("%s reconstruction of %s (%s) from %s", method, flight.path,

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruction.api import Progress, ReconstructionError, ReconstructionResult, report
+from reconstruction.result import Progress, ReconstructionError, ReconstructionResult, report
 from reconstruction.capture import Capture, CaptureError
 from reconstruction.flight import recordings_summary
 from reconstruction.monocular.dictionary import load_dictionary

@@ -17,7 +17,7 @@ import json
 import logging
 from pathlib import Path
 
-from reconstruction.api import Progress, ReconstructionError, ReconstructionResult, report
+from reconstruction.result import Progress, ReconstructionError, ReconstructionResult, report
 from reconstruction.capture import Capture
 from reconstruction.flight import recordings_summary
 from reconstruction.multiview.fit import FitConfig, FitResult

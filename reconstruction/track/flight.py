@@ -27,7 +27,7 @@ Every box is turned into a 3D measurement with :func:`onboard.tracking.measureme
     ``truth.mcap`` is present (simulated flights), the evaluation (:func:`evaluate`).
 
 Library entry: :func:`refine_flight` (a flight and a :class:`RefineConfig` -> a :class:`RefineResult`); ``skycap
-refine`` (:mod:`reconstruction.track.cli`) is a thin layer over it.
+refine`` (:mod:`apps.refine`) is a thin layer over it.
 """
 
 from __future__ import annotations

@@ -11,6 +11,7 @@ plain one (``FLIGHT_DIR/reconstruction``, when present) against the truth.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -38,8 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_refine(args: argparse.Namespace) -> int:
-    import dataclasses
-
+    # imported here: `skycap --help` imports every command module, and these pull in the reconstruction stack
+    from evaluation.refined import reconstruct_with_refined_poses
     from flightdata.folder import FlightFolder
     from reconstruction.track.flight import RefineConfig, format_evaluation, refine_flight
     from reconstruction.track.smoother import SmootherConfig
@@ -60,30 +61,3 @@ def _cmd_refine(args: argparse.Namespace) -> int:
         rec = reconstruct_with_refined_poses(flight, sortie=args.sortie)
         print(json.dumps(rec, indent=2))
     return 0
-
-
-def reconstruct_with_refined_poses(flight, sortie: int | None = None) -> dict:
-    """Multiview reconstruction with the refined drone positions into ``reconstruction_refined/``; MPJPE of it
-    and of the plain ``reconstruction/`` (when present) against the simulator truth; added to
-    ``refined_track.json`` under ``reconstruction``. Prints the reconstruction's summary (as ``skycap reconstruct``)."""
-    from evaluation.flight import reconstruction_accuracy
-    from flightdata.folder import FlightFolder
-    from reconstruction.api import reconstruct_flight
-    from reconstruction.multiview.run import MultiviewConfig
-
-    flight = flight if isinstance(flight, FlightFolder) else FlightFolder(flight)
-    out = flight.refined_reconstruction_dir
-    result = reconstruct_flight(flight, "multiview", MultiviewConfig(use_refined_poses=True), sortie=sortie, out_dir=out)
-    print(json.dumps(result.summary, indent=2))
-    js = flight.refined_json_path
-    summary = json.loads(js.read_text()) if js.is_file() else {}
-    window = summary.get("evaluation", {}).get("fleet", {}).get("window_s")
-    res = {"refined_poses": reconstruction_accuracy(flight.path, out / "motion.npz", window_s=window)}
-    plain = flight.reconstruction_dir("multiview") / "motion.npz"
-    if plain.is_file():
-        res["reported_poses"] = reconstruction_accuracy(flight.path, plain, window_s=window)
-    res = {k: {kk: vv for kk, vv in v.items() if not kk.startswith("per_group")} for k, v in res.items()}
-    if js.is_file():
-        summary["reconstruction"] = res
-        js.write_text(json.dumps(summary, indent=2))
-    return res
