@@ -1,6 +1,6 @@
 """The onboard agent: one process per drone, on its companion computer.
 
-It connects to its autopilot (:class:`onboard.autopilot.MavsdkAutopilot`, MAVSDK as a companion
+It connects to its autopilot (:class:`onboard.agent.autopilot.MavsdkAutopilot`, MAVSDK as a companion
 computer), joins the fleet over Zenoh (:class:`comms.transport.Transport`), takes plans and commands
 from the ground station and answers each with a :class:`~shared_msgs.CommandAck`, flies its slot of the
 orbit by streaming offboard setpoints, watches the ground-station heartbeat and the battery, and records
@@ -838,7 +838,7 @@ class Agent:
 
 async def run_agent(cfg: AgentConfig) -> int:
     """Process entry: open the transport and the recorder, run the agent until SIGTERM/SIGINT."""
-    from onboard.autopilot import MavsdkAutopilot
+    from onboard.agent.autopilot import MavsdkAutopilot
     from comms.transport import Transport
 
     cfg.validate()
