@@ -2,7 +2,7 @@
 
 :class:`Agent` (:mod:`onboard.agent.loop`) is a small loop wiring parts with one job each: the autopilot link
 (:mod:`~onboard.agent.autopilot`, its :class:`~onboard.agent.telemetry.Telemetry` record), the mission state
-machine (:mod:`onboard.mission`), the setpoint source (:mod:`onboard.orbit`, or in track mode
+machine (:mod:`onboard.mission`), the setpoint source (:mod:`onboard.setpoint`, :mod:`onboard.orbit`, or in track mode
 :mod:`~onboard.agent.formation`), the tracking capture (:mod:`~onboard.agent.tracking`), the formation
 failsafes (:mod:`~onboard.agent.failsafes`), publishing and recording (:mod:`~onboard.agent.outbox`).
 :func:`run_agent` (:mod:`onboard.agent.process`) is the ``skycap agent`` process.

@@ -23,7 +23,7 @@ from skycap.errors import SkycapError
 from skycap.frames import geodetic_to_ned
 
 from onboard.agent.telemetry import LANDED_STATES, Telemetry
-from onboard.orbit import Setpoint
+from onboard.setpoint import Setpoint
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ slot angle, configured by :class:`onboard.config.TrackConfig`) and flies one con
 failsafes decide, step the MPC in the filter's frame (own position corrected by the estimated GPS offset) and
 return the setpoint in the autopilot's frame; then keep the MPC's statistics and share its plan with the
 teammates (``<drone>/formation/plan``), whose plans it avoids (:meth:`~FormationFlight.on_teammate_plan`).
-Other sources (a pause's :class:`onboard.orbit.HoldSource`) are flown as they are.
+Other sources (a pause's :class:`onboard.setpoint.HoldSource`) are flown as they are.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from onboard.config import AgentConfig
 from onboard.formation.mpc import FormationMPC, MpcConfig, MpcResult, SharedPlan
 from onboard.formation.source import FormationSource
 from onboard.mission import Mission
-from onboard.orbit import Setpoint, SetpointSource
+from onboard.setpoint import Setpoint, SetpointSource
 from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M
 from shared_msgs import FormationPlan, Message, OrbitPlan, VehicleState, keys
 from skycap.frames import yaw_from_quat_wxyz

@@ -10,9 +10,9 @@ The :class:`Agent` is the wiring; each part has one job and is testable alone:
 
 * ``mission`` -- :class:`onboard.mission.Mission`, the pure state machine; validation in
   :func:`onboard.mission.validate_command` / :func:`~onboard.mission.validate_plan`.
-* ``source`` -- the current :class:`onboard.orbit.SetpointSource`, asked for one setpoint per control tick:
+* ``source`` -- the current :class:`onboard.setpoint.SetpointSource`, asked for one setpoint per control tick:
   an :class:`~onboard.orbit.OrbitController` (``mode = "orbit"``) or the formation MPC (``mode = "track"``,
-  built by ``formation``), a :class:`~onboard.orbit.HoldSource` while paused.
+  built by ``formation``), a :class:`~onboard.setpoint.HoldSource` while paused.
 * ``perception`` -- a list of :class:`~onboard.agent.perception.PerceptionStage`; each camera frame goes
   through them in order and what they return is published and recorded.
 * ``autopilot`` -- the thin MAVSDK adapter, its latest telemetry a typed record
@@ -53,7 +53,8 @@ from onboard.agent.rates import RateMeter
 from onboard.agent.teammates import Teammates
 from onboard.config import AgentConfig
 from onboard.mission import Action, Mission, State, closest_neighbour, validate_command, validate_plan
-from onboard.orbit import HoldSource, OrbitController, Setpoint, SetpointSource
+from onboard.orbit import OrbitController
+from onboard.setpoint import HoldSource, Setpoint, SetpointSource
 from shared_msgs import (
     CameraFrame,
     CameraInfo,
