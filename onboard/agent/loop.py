@@ -18,7 +18,9 @@ The :class:`Agent` is the wiring; each part has one job and is testable alone:
 * ``autopilot`` -- the thin MAVSDK adapter, its latest telemetry a typed record
   (:class:`onboard.agent.telemetry.Telemetry`); ``outbox`` -- keys, publishing on the Zenoh bus and recording
   (:class:`onboard.agent.outbox.Outbox`); ``teammates`` -- the other drones' states
-  (:class:`onboard.agent.teammates.Teammates`).
+  (:class:`onboard.agent.teammates.Teammates`); ``supervisor`` -- the vehicle's events into the mission, offboard
+  loss and the ``safety`` failsafes: ground-station heartbeat, battery, separation
+  (:class:`onboard.agent.supervisor.VehicleSupervisor`).
 * track mode only (``mode = "track"``; None otherwise): ``tracking`` -- the tracking capture
   (:class:`onboard.agent.tracking.TrackingCapture`: own and teammates' detections -> the cooperative filter,
   the ONNX detector's worker); ``formation`` -- the formation setpoint source
@@ -50,9 +52,10 @@ from comms.transport import deliver_to_loop
 from onboard.agent.outbox import Outbox
 from onboard.agent.perception import PerceptionStage
 from onboard.agent.rates import RateMeter
+from onboard.agent.supervisor import VehicleSupervisor
 from onboard.agent.teammates import Teammates
 from onboard.config import AgentConfig
-from onboard.mission import Action, Mission, State, closest_neighbour, validate_command, validate_plan
+from onboard.mission import Action, Mission, State, validate_command, validate_plan
 from onboard.orbit import OrbitController
 from onboard.setpoint import HoldSource, Setpoint, SetpointSource
 from shared_msgs import (
@@ -99,20 +102,18 @@ class Agent:
         self.last_setpoint: Setpoint | None = None
         self.state: VehicleState | None = None
         self.camera_info: CameraInfo | None = None
-        self.t_last_gcs_s = time.monotonic()
-        self.gcs_seen = False
         self.rates = {k: RateMeter() for k in ("setpoint", "state", "frame", "keypoints")}
         self.warnings: list[str] = []
         self.acks: list[CommandAck] = []  # for tests and the health report
-        self._takeoff_alt_m = cfg.flight.takeoff_altitude_m  #: the altitude of the last take-off asked for
         self._act_lock = asyncio.Lock()
         self._tasks: list[asyncio.Task] = []
         self._subs: list[Any] = []
         self._last_state_pub_s = 0.0
         self._cpu = (time.monotonic(), time.process_time())
-        self._separation_warned = False
         self._gimbal_sent: tuple[float, float] | None = None
-        self._resumes: list[float] = []
+        self.supervisor = VehicleSupervisor(cfg, self.mission, autopilot, self.teammates, failsafe=self._failsafe,
+                                            stop_setpoints=self._stop_setpoints, resume_offboard=self._resume_offboard,
+                                            setpoints_flowing=self._setpoints_flowing, warn=self.warnings.append)
         #: track mode's parts (None in orbit mode)
         self.tracking: TrackingCapture | None = None
         self.failsafes: FormationFailsafes | None = None
@@ -157,10 +158,7 @@ class Agent:
                 log.debug("state publish failed: %s", e)
 
     def on_gcs_health(self, rx) -> None:
-        self.t_last_gcs_s = time.monotonic()
-        if not self.gcs_seen:
-            log.info("%s: ground-station heartbeat received", self.id)
-        self.gcs_seen = True
+        self.supervisor.on_gcs_heartbeat()
 
     def on_neighbour_state(self, rx) -> None:
         self.teammates.note(keys.parse_key(rx.key)[1], rx.msg, time.monotonic(), time.time())
@@ -254,8 +252,8 @@ class Agent:
                     await ap.wait_healthy(self.cfg.flight.health_timeout_s)
                     if not ap.telemetry.armed:
                         await ap.arm()
-                    self._takeoff_alt_m = float(params.get("altitude_m", self.cfg.flight.takeoff_altitude_m))
-                    await ap.takeoff(self._takeoff_alt_m)
+                    self.supervisor.takeoff_alt_m = float(params.get("altitude_m", self.cfg.flight.takeoff_altitude_m))
+                    await ap.takeoff(self.supervisor.takeoff_alt_m)
                 elif action == Action.START_ORBIT:
                     await self._start_orbit()
                 elif action == Action.PAUSE:
@@ -400,77 +398,26 @@ class Agent:
                 self.outbox.publish(keys.HEALTH, self.health())
 
     def supervise_once(self) -> None:
-        T = self.autopilot.telemetry
-        alt = T.altitude_m
-        before = self.mission.state
-        # take-off done: at the asked altitude, or the autopilot finished its take-off elsewhere (PX4 may
-        # use its own MIS_TAKEOFF_ALT) and holds still in the air
-        settled = (T.flight_mode == "HOLD" and T.landed_state == "in_air" and alt > 1.0
-                   and abs(T.velocity_ned_m_s[2]) < 0.2)
-        self.mission.vehicle(T.armed, T.in_air, alt >= 0.9 * self._takeoff_alt_m or settled)
-        if self.mission.state != before:
-            log.info("%s: %s -> %s", self.id, before.value, self.mission.state.value)
-            if self.mission.state == State.LANDED:
-                self.source = None
-        fs = self.cfg.safety
-        self._check_offboard(T.flight_mode)
-        if self.mission.airborne:
-            silent = time.monotonic() - self.t_last_gcs_s
-            if silent > fs.gcs_heartbeat_timeout_s:
-                self._failsafe(f"ground-station heartbeat lost for {silent:.1f} s", fs.gcs_loss_action)
-            if T.battery_remaining_frac < fs.low_battery_frac:
-                self._failsafe(f"low battery {100 * T.battery_remaining_frac:.0f}%", fs.low_battery_action)
-            self._check_separation(T.position_ned_m)
+        """Vehicle events into the mission, offboard loss, the ``safety`` failsafes (:class:`VehicleSupervisor`)."""
+        self.supervisor.check()
 
-    def _check_offboard(self, mode: str) -> None:
-        """Notice the autopilot leaving offboard under us (failsafe or pilot) and follow or resume."""
+    def _setpoints_flowing(self) -> bool:
+        """A setpoint source is set and the stream went out at >= half its rate lately."""
+        return self.source is not None and self.rates["setpoint"].rate_hz() >= 0.5 * self.cfg.rates.setpoint_hz
+
+    def _stop_setpoints(self) -> None:
+        self.source = None
+
+    def _resume_offboard(self) -> None:
         ap = self.autopilot
-        if not ap.offboard_active or mode == "OFFBOARD" or time.monotonic() - ap.offboard_since_s < 2.0:
-            return
-        now = time.monotonic()
-        self._resumes = [t for t in self._resumes if now - t < 60.0]
-        may_resume = len(self._resumes) < self.cfg.safety.offboard_resumes_per_min and self.source is not None \
-            and self.rates["setpoint"].rate_hz() >= 0.5 * self.cfg.rates.setpoint_hz
-        before = self.mission.state
-        tr = self.mission.offboard_lost(mode, may_resume)
-        reason = f"autopilot left offboard for {mode}"
-        if tr.action == Action.RESUME_OFFBOARD:
-            self._resumes.append(now)
-            log.warning("%s: %s: switching back to offboard (%d in the last minute)", self.id, reason, len(self._resumes))
-            self.warnings.append(reason + ", resumed")
-            ap.offboard_since_s = now  # no second attempt before this one had time
 
-            async def resume():
-                try:
-                    await ap.start_offboard()
-                except Exception as e:
-                    log.error("%s: resuming offboard failed: %s", self.id, e)
+        async def resume():
+            try:
+                await ap.start_offboard()
+            except Exception as e:
+                log.error("%s: resuming offboard failed: %s", self.id, e)
 
-            self._spawn(resume(), "resume_offboard")
-            return
-        ap.offboard_active = False
-        if self.mission.state != before or tr.state in (State.PAUSED, State.LANDING, State.RETURNING):
-            log.warning("%s: %s: %s -> %s", self.id, reason, before.value, self.mission.state.value)
-            self.warnings.append(reason)
-            self.source = None
-
-    def _check_separation(self, pos) -> None:
-        plan = self.mission.plan
-        if pos is None or self.mission.state != State.ORBIT:
-            return
-        near = closest_neighbour(pos, self.teammates.positions, time.monotonic())
-        limit = plan.min_separation_m if plan is not None else 3.0
-        if near is None or near[1] >= limit:
-            self._separation_warned = False
-            return
-        reason = f"separation: {near[0]} at {near[1]:.1f} m (< {limit:.1f} m)"
-        if self.cfg.safety.separation_action == "warn":
-            if not self._separation_warned:
-                log.warning("%s: %s", self.id, reason)
-                self.warnings.append(reason)
-            self._separation_warned = True
-        else:
-            self._failsafe(reason, self.cfg.safety.separation_action)
+        self._spawn(resume(), "resume_offboard")
 
     def _failsafe(self, reason: str, action: str) -> None:
         tr = self.mission.trigger_failsafe(reason, action)

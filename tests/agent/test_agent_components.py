@@ -4,6 +4,7 @@ source chosen by ``mode``, the formation failsafes and the tracking capture (no 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import time
@@ -198,3 +199,44 @@ def test_tracking_capture_alone_takes_a_gps_jump_back():
     off.on_state(_state("drone_1", (0.0, 0.0, -5.0), int(10e9)))
     off.on_state(_state("drone_1", (9.0, 0.0, -5.0), int(10.02e9)))
     assert not off.stage.position_correction(int(20e9)).any()
+
+
+# --- vehicle supervisor -----------------------------------------------------------------------------------
+def test_vehicle_supervisor_alone():
+    from onboard.agent.supervisor import VehicleSupervisor
+    from onboard.mission import Mission, State
+
+    calls: list = []
+    flowing = [True]
+    ap = FakeAutopilot()
+    ap.telemetry = Telemetry(armed=True, in_air=True, flight_mode="OFFBOARD", landed_state="in_air",
+                             position_ned_m=(0.0, 0.0, -5.0), health_ok=True, battery_remaining_frac=0.9)
+    ap.offboard_active, ap.offboard_since_s = True, 0.0
+    mission, tm = Mission(), Teammates("drone_1")
+    mission.set_plan(make_orbit_plan(["drone_1", "drone_2"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1))
+    mission.state = State.ORBIT
+    sup = VehicleSupervisor(AgentConfig(drone_id="drone_1"), mission, ap, tm,
+                            failsafe=lambda r, a: calls.append(("failsafe", a, r)),
+                            stop_setpoints=lambda: calls.append(("stop",)), resume_offboard=lambda: calls.append(("resume",)),
+                            setpoints_flowing=lambda: flowing[0], warn=lambda w: calls.append(("warn", w)))
+    sup.on_gcs_heartbeat()
+    sup.check()
+    assert calls == [] and sup.gcs_seen
+    # PX4's stream-loss HOLD while the setpoints flow: switched back
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="HOLD")
+    sup.check()
+    assert calls[-1] == ("resume",) and ("warn", "autopilot left offboard for HOLD, resumed") in calls
+    # another drone too close: the configured separation action (hold)
+    tm.note("drone_2", _state("drone_2", (1.0, 0.0, -5.0)), time.monotonic(), time.time())
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="OFFBOARD")
+    calls.clear()
+    sup.check()
+    assert calls[0][:2] == ("failsafe", "hold") and "separation: drone_2" in calls[0][2]
+    # the ground station falls silent; low battery
+    calls.clear()
+    sup.t_last_gcs_s -= 10.0
+    ap.telemetry = dataclasses.replace(ap.telemetry, battery_remaining_frac=0.1)
+    sup.check()
+    assert [c[1] for c in calls if c[0] == "failsafe"][:2] == ["land", "land"]
+    assert any("heartbeat lost" in c[2] for c in calls if c[0] == "failsafe")
+    assert any("low battery 10%" in c[2] for c in calls if c[0] == "failsafe")
