@@ -8,7 +8,6 @@ import dataclasses
 import logging
 import math
 import time
-from types import SimpleNamespace
 
 import numpy as np
 
