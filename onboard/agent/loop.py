@@ -52,6 +52,7 @@ from comms.transport import deliver_to_loop
 from onboard.agent.outbox import Outbox
 from onboard.agent.perception import PerceptionStage
 from onboard.agent.rates import RateMeter
+from onboard.agent.stats import tracking_stats
 from onboard.agent.supervisor import VehicleSupervisor
 from onboard.agent.teammates import Teammates
 from onboard.config import AgentConfig
@@ -294,51 +295,7 @@ class Agent:
     # --- statistics -----------------------------------------------------------------------------------
     def tracking_stats(self) -> dict:
         """What the flight summary needs from this agent's tracking (written next to its recording)."""
-        tr = self.tracking.stats() if self.tracking is not None else {
-            "detections_source": self.cfg.track.detections, "detector": None, "offset_log": [], "counts": {},
-            "filter_stats": {}}
-        fm = self.formation.stats() if self.formation is not None else {
-            "mpc_solve_ms": [], "mpc_fallbacks": 0, "teammate_plans_received": 0}
-        fs = self.failsafes
-        return {
-            "drone_id": self.id,
-            "mode": self.cfg.mode,
-            "detections_source": tr["detections_source"],
-            "detector": tr["detector"],
-            **fm,
-            "offset_log": tr["offset_log"],
-            "counts": tr["counts"],
-            "filter_stats": tr["filter_stats"],
-            "failsafe_events": [] if fs is None else list(fs.log.events),
-            "failsafe_counts": {} if fs is None else dict(fs.log.counts),
-            "malformed_detections": self.malformed_detections(),
-            "transport": self.transport_counts(),
-        }
-
-    def _detection_subs(self) -> list:
-        det_topics = (keys.DETECTIONS, keys.SIM_DETECTIONS)
-        return [s for s in self._subs if any(s.key_expr.endswith("/" + t) for t in det_topics)]
-
-    def malformed_detections(self) -> dict:
-        """Detections ignored as malformed: refused by the codec on receipt (NaN/inf, wrong array lengths,
-        undecodable), refused by the tracking stage (inconsistent boxes, non-rigid pose ...), and
-        non-finite measurements the filter refused; ``total`` = their sum."""
-        codec = sum(int(s.stats.malformed) for s in self._detection_subs())
-        content, nonfinite = self.tracking.malformed_counts() if self.tracking is not None else (0, 0)
-        return {"refused_by_codec": codec, "invalid_content": content, "nonfinite_measurements": nonfinite,
-                "total": codec + content + nonfinite}
-
-    def transport_counts(self) -> dict:
-        """Receive counters over all subscriptions (with the simulated fault layer's drops and delays)."""
-        out = {"received": 0, "malformed": 0, "fault_judged": 0, "fault_dropped": 0, "fault_delayed": 0}
-        for s in self._subs:
-            st = s.stats
-            out["received"] += int(st.received)
-            out["malformed"] += int(st.malformed)
-            out["fault_judged"] += int(st.fault_judged)
-            out["fault_dropped"] += int(st.fault_dropped)
-            out["fault_delayed"] += int(st.fault_delayed)
-        return out
+        return tracking_stats(self.cfg, self._subs, self.tracking, self.formation, self.failsafes)
 
     # --- loops ----------------------------------------------------------------------------------------
     def next_setpoint(self, src: SetpointSource, t_s: float, st: VehicleState) -> Setpoint:

@@ -239,3 +239,21 @@ def test_vehicle_supervisor_alone():
     assert [c[1] for c in calls if c[0] == "failsafe"][:2] == ["land", "land"]
     assert any("heartbeat lost" in c[2] for c in calls if c[0] == "failsafe")
     assert any("low battery 10%" in c[2] for c in calls if c[0] == "failsafe")
+
+
+# --- statistics -------------------------------------------------------------------------------------------
+def test_statistics_sum_the_subscriptions_counters():
+    from comms.transport import TopicStats
+    from onboard.agent.stats import malformed_detections, transport_counts
+
+    class Sub:
+        def __init__(self, key_expr, **counts):
+            self.key_expr, self.stats = key_expr, TopicStats(**counts)
+
+    subs = [Sub("f/drone/*/detections", received=10, malformed=2, fault_judged=5, fault_dropped=1),
+            Sub("f/drone/drone_1/sim/detections", received=4, malformed=1, fault_delayed=2),
+            Sub("f/drone/*/state", received=100, malformed=3)]
+    assert transport_counts(subs) == {"received": 114, "malformed": 6, "fault_judged": 5, "fault_dropped": 1,
+                                      "fault_delayed": 2}
+    assert malformed_detections(subs, None) == {"refused_by_codec": 3, "invalid_content": 0,
+                                                "nonfinite_measurements": 0, "total": 3}
