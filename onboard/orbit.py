@@ -10,27 +10,23 @@ together (their spacing is fixed by the plan, whatever the clock of each drone's
 ``center + radius * (cos theta, sin theta)`` at ``down = -altitude_m``; velocity feed-forward is the
 derivative; the camera yaw points at the centre and the gimbal pitch down at it.
 
-:class:`OrbitController` is a :class:`SetpointSource` (the agent's loop asks it for one
-:class:`Setpoint` per tick). It approaches the slot from wherever the vehicle is with a rate-limited
+:class:`OrbitController` is a :class:`onboard.setpoint.SetpointSource` (the agent's loop asks it for one
+:class:`~onboard.setpoint.Setpoint` per tick). It approaches the slot from wherever the vehicle is with a rate-limited
 "carrot" (speed ``approach_speed_m_s``), so entering the orbit from a hover never asks the autopilot
-for a jump, then tracks the moving slot with velocity feed-forward. A formation controller (MPC) will
-be another :class:`SetpointSource`.
+for a jump, then tracks the moving slot with velocity feed-forward. The formation MPC
+(:class:`onboard.formation.source.FormationSource`) is another.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
+from onboard.setpoint import Setpoint
 from shared_msgs import OrbitPlan
 
 __all__ = [
-    "Setpoint",
-    "SetpointSource",
-    "HoldSource",
     "OrbitController",
     "slot_angle_rad",
     "slot_state",
@@ -39,42 +35,6 @@ __all__ = [
     "min_slot_separation_m",
     "evenly_spaced_phases",
 ]
-
-
-@dataclass
-class Setpoint:
-    """One offboard setpoint (NED world frame).
-
-    position_ned_m: (3,) metres; velocity_ned_m_s: (3,) feed-forward; yaw_rad: heading (0 = north,
-    positive = east); gimbal_pitch_rad: camera pitch (negative = down) or None for "leave it".
-    """
-
-    position_ned_m: np.ndarray
-    velocity_ned_m_s: np.ndarray
-    yaw_rad: float
-    gimbal_pitch_rad: float | None = None
-    acceleration_ned_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-class SetpointSource(Protocol):
-    """What the agent's control loop asks for a setpoint each tick.
-
-    ``update(t_s, position_ned_m, velocity_ned_m_s, yaw_rad)`` gets the time (s, same clock as the
-    plan's start time) and the vehicle's estimate, and returns the :class:`Setpoint` to stream.
-    """
-
-    def update(self, t_s: float, position_ned_m: np.ndarray, velocity_ned_m_s: np.ndarray, yaw_rad: float) -> Setpoint: ...
-
-
-class HoldSource:
-    """Hold a fixed point and heading (pause, or waiting for a plan while in offboard)."""
-
-    def __init__(self, position_ned_m, yaw_rad: float):
-        self.position_ned_m = np.asarray(position_ned_m, dtype=float).copy()
-        self.yaw_rad = float(yaw_rad)
-
-    def update(self, t_s, position_ned_m, velocity_ned_m_s, yaw_rad) -> Setpoint:
-        return Setpoint(self.position_ned_m.copy(), np.zeros(3), self.yaw_rad)
 
 
 def slot_angle_rad(plan: OrbitPlan, drone_id: str, t_s: float) -> float:
@@ -126,7 +86,7 @@ def evenly_spaced_phases(drone_ids: list[str], first_rad: float = 0.0) -> dict[s
 
 
 class OrbitController:
-    """Setpoints for one drone's slot of an :class:`OrbitPlan` (a :class:`SetpointSource`).
+    """Setpoints for one drone's slot of an :class:`OrbitPlan` (a :class:`~onboard.setpoint.SetpointSource`).
 
     A carrot point starts at the vehicle's position and moves towards the slot at most at
     ``approach_speed_m_s`` (horizontal) / ``approach_climb_m_s`` (vertical); once it has reached the

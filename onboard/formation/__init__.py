@@ -1,7 +1,7 @@
 """Formation control on board: the decentralised formation MPC, slot assignment and failsafe decisions.
 
 Import the parts from their modules (``onboard.formation.mpc``, ``.slots``, ``.failsafe``, ``.source``);
-``source`` imports the agent's ``onboard.orbit`` and is not loaded here.
+``source`` imports the agent's ``onboard.setpoint`` and is not loaded here.
 """
 
 from onboard.formation.failsafe import FailsafeAction, FailsafeConfig, FailsafeDecision, FailsafeInputs, FormationSupervisor, decide

@@ -1,4 +1,4 @@
-"""The formation MPC as the agent's setpoint source (:class:`onboard.orbit.SetpointSource` protocol).
+"""The formation MPC as the agent's setpoint source (:class:`onboard.setpoint.SetpointSource` protocol).
 
 Pure logic: the agent feeds it the fused person estimate (:meth:`FormationSource.set_target`), its slot
 angle and the teammates' shared plans as they arrive; the control loop calls :meth:`update` every tick and
@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from onboard.formation.mpc import FormationMPC, MpcResult, SharedPlan
-from onboard.orbit import Setpoint
+from onboard.setpoint import Setpoint
 
 __all__ = ["FormationSource"]
 

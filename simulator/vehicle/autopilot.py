@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from simulator.config import SimConfig
-from simulator.vehicle.controller import ControllerGains, ControllerLimits, PositionController, Setpoint
+from simulator.vehicle.controller import ControllerGains, ControllerLimits, PositionController, TrajectorySetpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2, DynamicsLimits, MultirotorDynamics
 from simulator.vehicle.environment import Battery, EstimatorErrorModel
 from simulator.vehicle.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, ParamStore
@@ -150,7 +150,7 @@ class SimVehicle:
         self._land_xy: np.ndarray | None = None
         self._rtl_phase = ""
         self._rtl_alt_d = 0.0
-        self._offboard_sp: Setpoint | None = None
+        self._offboard_sp: TrajectorySetpoint | None = None
         self._offboard_sp_t_s = -math.inf
         self._battery_failsafe_done = False
         self._battery_low_warned = False
@@ -366,7 +366,7 @@ class SimVehicle:
         self._hold_speed_m_s = speed_m_s
         return ACCEPTED
 
-    def set_offboard_setpoint(self, sp: Setpoint) -> None:
+    def set_offboard_setpoint(self, sp: TrajectorySetpoint) -> None:
         """A new offboard setpoint in the *local* frame (as received); refreshes the offboard signal."""
         if not np.all(np.isnan(sp.position_ned_m)):
             sp.position_ned_m = sp.position_ned_m + self.local_origin_ned_m
@@ -426,7 +426,7 @@ class SimVehicle:
         self.dyn.step(dt_s, body_z, thrust, yaw_rate, wind_ned_m_s, motors_on=self.armed)
         self.battery.step(dt_s, self.armed, self.dyn.state.thrust_m_s2 / GRAVITY_M_S2)
 
-    def _wants_ground(self, sp: Setpoint) -> bool:
+    def _wants_ground(self, sp: TrajectorySetpoint) -> bool:
         if sp.body_z_cmd is not None:
             return False
         if not math.isnan(sp.position_ned_m[2]):
@@ -478,11 +478,11 @@ class SimVehicle:
             else:
                 self._set_mode(FlightMode.LAND)
 
-    def _mode_setpoint(self) -> Setpoint:
+    def _mode_setpoint(self) -> TrajectorySetpoint:
         p = self.est_position_ned_m
         P = self.params
         if not self.armed:
-            return Setpoint()
+            return TrajectorySetpoint()
         m = self.mode
         if m == FlightMode.OFFBOARD and self._offboard_sp is not None:
             return self._offboard_sp
@@ -493,14 +493,14 @@ class SimVehicle:
                 self._set_mode(FlightMode.HOLD)
                 self._hold_target = tgt.copy()
                 return self._mode_setpoint()
-            return Setpoint(
+            return TrajectorySetpoint(
                 position_ned_m=tgt.copy(),
                 yaw_rad=self._hold_yaw_or_current(),
                 max_speed_up_m_s=float(P["MPC_TKO_SPEED"]),
             )
         if m == FlightMode.LAND:
             xy = self._land_xy if self._land_xy is not None else p[:2]
-            return Setpoint(
+            return TrajectorySetpoint(
                 position_ned_m=np.array([xy[0], xy[1], np.nan]),
                 velocity_ned_m_s=np.array([np.nan, np.nan, float(P["MPC_LAND_SPEED"])]),
                 yaw_rad=self._hold_yaw_or_current(),
@@ -511,7 +511,7 @@ class SimVehicle:
             if self._rtl_phase == "climb":
                 if p[2] <= self._rtl_alt_d + 0.3:
                     self._rtl_phase = "return"
-                return Setpoint(
+                return TrajectorySetpoint(
                     position_ned_m=np.array([p[0], p[1], self._rtl_alt_d])
                     if self._rtl_phase == "climb"
                     else np.array([home[0], home[1], self._rtl_alt_d]),
@@ -521,22 +521,22 @@ class SimVehicle:
             if self._rtl_phase == "return":
                 if math.hypot(p[0] - home[0], p[1] - home[1]) < 0.5:
                     self._rtl_phase = "land"
-                return Setpoint(
+                return TrajectorySetpoint(
                     position_ned_m=np.array([home[0], home[1], self._rtl_alt_d]),
                     max_speed_xy_m_s=cruise,
                     yaw_rad=self._hold_yaw_or_current(),
                 )
-            return Setpoint(
+            return TrajectorySetpoint(
                 position_ned_m=np.array([home[0], home[1], np.nan]),
                 velocity_ned_m_s=np.array([np.nan, np.nan, float(P["MPC_LAND_SPEED"])]),
                 yaw_rad=self._hold_yaw_or_current(),
             )
         # HOLD (and any other mode): hold a point; on the ground stay there
         if self.landed and (self._hold_target is None or self._hold_target[2] >= p[2] - 0.2):
-            return Setpoint(velocity_ned_m_s=np.array([0.0, 0.0, 0.5]))
+            return TrajectorySetpoint(velocity_ned_m_s=np.array([0.0, 0.0, 0.5]))
         if self._hold_target is None:
             self._hold_target = p.copy()
-        return Setpoint(
+        return TrajectorySetpoint(
             position_ned_m=self._hold_target.copy(),
             yaw_rad=self._hold_yaw_or_current(),
             max_speed_xy_m_s=self._hold_speed_m_s,

@@ -23,8 +23,13 @@ NAN3 = np.full(3, np.nan)
 
 
 @dataclass
-class Setpoint:
-    """What the flight mode wants. Shapes (3,) NED in the vehicle's local frame; NaN = not set."""
+class TrajectorySetpoint:
+    """What the flight mode wants (PX4's ``trajectory_setpoint``). Shapes (3,) NED in the vehicle's local frame;
+    NaN = not set.
+
+    Not the agent's :class:`onboard.setpoint.Setpoint` (world frame, fully set, camera pitch), which reaches the
+    vehicle only as MAVLink ``SET_POSITION_TARGET_LOCAL_NED`` and is turned into one of these by the endpoint.
+    """
 
     position_ned_m: np.ndarray = field(default_factory=lambda: NAN3.copy())
     velocity_ned_m_s: np.ndarray = field(default_factory=lambda: NAN3.copy())
@@ -87,7 +92,7 @@ class PositionController:
     def update(
         self,
         dt_s: float,
-        sp: Setpoint,
+        sp: TrajectorySetpoint,
         position_ned_m: np.ndarray,
         velocity_ned_m_s: np.ndarray,
         yaw_rad: float,
@@ -195,7 +200,7 @@ class PositionController:
             thrust = float(np.linalg.norm(f))
         return -f / thrust, thrust
 
-    def _yaw_rate(self, sp: Setpoint, yaw_rad: float) -> float:
+    def _yaw_rate(self, sp: TrajectorySetpoint, yaw_rad: float) -> float:
         lim = self.limits
         rate = 0.0 if math.isnan(sp.yaw_rate_rad_s) else sp.yaw_rate_rad_s
         if not math.isnan(sp.yaw_rad):

@@ -28,7 +28,7 @@ from simulator.config import RatesConfig
 from simulator.vehicle import autopilot as ap
 from simulator.vehicle.autopilot import SimVehicle
 from skycap.frames import R_from_quat_wxyz, euler_from_R, quat_wxyz_from_R, yaw_from_R
-from simulator.vehicle.controller import Setpoint
+from simulator.vehicle.controller import TrajectorySetpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2
 from simulator.vehicle.params import decode_param_value, encode_param_value
 from simulator.vehicle.px4_modes import encode_custom_mode, heartbeat_base_mode
@@ -556,7 +556,8 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         elif frame not in (M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_LOCAL_FRD):
             return
         v.set_offboard_setpoint(
-            Setpoint(position_ned_m=pos, velocity_ned_m_s=vel, accel_ned_m_s2=acc, yaw_rad=yaw, yaw_rate_rad_s=yaw_rate)
+            TrajectorySetpoint(position_ned_m=pos, velocity_ned_m_s=vel, accel_ned_m_s2=acc, yaw_rad=yaw,
+                               yaw_rate_rad_s=yaw_rate)
         )
 
     def _on_SET_POSITION_TARGET_GLOBAL_INT(self, msg) -> None:
@@ -572,7 +573,7 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         yaw = math.nan if mask & (1 << 10) else msg.yaw
         yaw_rate = math.nan if mask & (1 << 11) else msg.yaw_rate
         v.set_offboard_setpoint(
-            Setpoint(
+            TrajectorySetpoint(
                 position_ned_m=world - v.local_origin_ned_m, velocity_ned_m_s=vel, yaw_rad=yaw, yaw_rate_rad_s=yaw_rate
             )
         )
@@ -587,7 +588,7 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         else:
             R = R_from_quat_wxyz(msg.q)
             yaw = math.nan if not math.isnan(yaw_rate) and yaw_rate != 0.0 else yaw_from_R(R)
-        sp = Setpoint(yaw_rad=yaw, yaw_rate_rad_s=yaw_rate)
+        sp = TrajectorySetpoint(yaw_rad=yaw, yaw_rate_rad_s=yaw_rate)
         sp.body_z_cmd = R[:, 2].copy()
         sp.thrust_m_s2 = float(thrust) / 0.5 * GRAVITY_M_S2
         v.set_offboard_setpoint(sp)

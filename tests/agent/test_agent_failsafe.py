@@ -5,6 +5,7 @@ angle); low battery -> return through the mission and the autopilot; every chang
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import time
 from types import SimpleNamespace
@@ -13,6 +14,7 @@ import numpy as np
 
 from groundstation.fleet import make_orbit_plan
 from onboard.agent import Agent
+from onboard.agent.telemetry import Telemetry
 from onboard.config import AgentConfig
 from onboard.mission import State
 from shared_msgs import VehicleState, encode, keys
@@ -20,8 +22,9 @@ from shared_msgs import VehicleState, encode, keys
 
 class FakeAutopilot:
     def __init__(self):
-        self.telemetry = {"battery_frac": 0.9, "armed": True, "in_air": True, "flight_mode": "OFFBOARD",
-                          "landed_state": "in_air", "vel": (0.0, 0.0, 0.0), "pos": (8.0, 0.0, -6.0), "health_ok": True}
+        self.telemetry = Telemetry(battery_remaining_frac=0.9, armed=True, in_air=True, flight_mode="OFFBOARD",
+                                   landed_state="in_air", velocity_ned_m_s=(0.0, 0.0, 0.0),
+                                   position_ned_m=(8.0, 0.0, -6.0), health_ok=True)
         self.on_state = None
         self.calls: list[str] = []
 
@@ -55,7 +58,7 @@ def test_agent_acts_on_formation_failsafes():
         plan = make_orbit_plan(ids, (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1, phase_offset_rad=phases)
         agent.mission.set_plan(plan)
         agent.mission.state = State.ORBIT
-        src = agent._formation_source(plan)
+        src = agent.formation.build_source(plan)
         agent.source = src
         pos = {d: (8.0 * math.cos(a), 8.0 * math.sin(a), -6.0) for d, a in phases.items()}
         own = np.asarray(pos["drone_1"])
@@ -65,30 +68,30 @@ def test_agent_acts_on_formation_failsafes():
             for d in ("drone_2", "drone_3"):
                 if d in alive:
                     agent.on_neighbour_state(_state(d, pos[d]))
-            agent._supervise_formation(src, t + dt, own)
+            agent.formation.supervise(src, t + dt, own)
             src.update(t + dt, own, np.zeros(3), 0.0)
 
         alive = {"drone_2", "drone_3"}
         step(0.0)  # the start: nothing seen yet, within the acquisition grace time
-        assert not src.holding and abs(src.slot_angle_rad) < 1e-9 and agent.failsafe_log.events == []
-        agent._t_person_seen_s = time.time() - 5.0  # the person was last seen 5 s ago
+        assert not src.holding and abs(src.slot_angle_rad) < 1e-9 and agent.failsafes.log.events == []
+        agent.failsafes.t_person_seen_s = time.time() - 5.0  # the person was last seen 5 s ago
         step(0.0)
         assert src.holding and src.search_yaw_rate_rad_s > 0
         np.testing.assert_allclose(src.hold_position_ned_m, own)
-        assert agent.failsafe_log.events[-1]["action"] == "hold_and_search"
-        agent._t_person_seen_s = time.time()  # found again
+        assert agent.failsafes.log.events[-1]["action"] == "hold_and_search"
+        agent.failsafes.t_person_seen_s = time.time()  # found again
         step(0.0)
-        assert not src.holding and agent.failsafe_log.events[-1]["action"] == "continue"
+        assert not src.holding and agent.failsafes.log.events[-1]["action"] == "continue"
         # drone_3 falls silent: after teammate_lost_after_s the others re-space
         alive = {"drone_2"}
-        agent.teammate_seen_s["drone_3"] = time.time() - 3.0
-        agent._t_person_seen_s = time.time()
+        agent.teammates.seen_unix_s["drone_3"] = time.time() - 3.0
+        agent.failsafes.t_person_seen_s = time.time()
         step(0.0)
-        ev = agent.failsafe_log.events[-1]
+        ev = agent.failsafes.log.events[-1]
         assert ev["action"] == "respace" and ev["present"] == ["drone_1", "drone_2"]
         assert abs(src.slot_angle_rad) > math.radians(10) and ev["slot_angle_rad"] == round(src.slot_angle_rad, 4)
         # low battery: return through the mission and the autopilot
-        ap.telemetry["battery_frac"] = 0.2
+        ap.telemetry = dataclasses.replace(ap.telemetry, battery_remaining_frac=0.2)
         step(0.0)
         await asyncio.sleep(0.05)
         assert agent.mission.state == State.RETURNING and ap.calls == ["return"] and agent.source is None
@@ -113,14 +116,14 @@ def test_agent_detects_a_gps_jump_and_takes_it_back():
         agent._on_state(_vs(t0 + 0.02 * i, (2.0 * 0.02 * i, 0.0, -6.0), v))
     agent._on_state(_vs(t0 + 1.4, (2.0 * 1.0, 0.0, -6.0), v))  # arrived 0.4 s late, moved 2 cm
     agent._on_state(_vs(t0 + 1.4005, (2.0 * 1.02, 0.0, -6.0), v))
-    assert agent.failsafe_log.events == [] and not agent.tracking.position_correction(int(2000e9)).any()
+    assert agent.failsafes.log.events == [] and not agent.tracking.stage.position_correction(int(2000e9)).any()
     agent._on_state(_vs(t0 + 1.42, (2.0 * 1.04 + 3.0, 0.0, -6.0), v))  # +3 m north in 20 ms
-    ev = agent.failsafe_log.events[-1]
+    ev = agent.failsafes.log.events[-1]
     assert ev["action"] == "gps_jump" and ev["source"] == "estimator"
-    assert agent.failsafe_log.counts == {"estimator:gps_jump": 1}
+    assert agent.failsafes.log.counts == {"estimator:gps_jump": 1}
     t_j = int((t0 + 1.42) * 1e9)
-    np.testing.assert_allclose(agent.tracking.position_correction(t_j), [3.0, 0.0, 0.0], atol=0.02)
-    assert not agent.tracking.position_correction(t_j - 1).any()
+    np.testing.assert_allclose(agent.tracking.stage.position_correction(t_j), [3.0, 0.0, 0.0], atol=0.02)
+    assert not agent.tracking.stage.position_correction(t_j - 1).any()
     # the planning position is taken back by it (no track yet: the correction alone)
-    np.testing.assert_allclose(agent._feed_formation(agent._formation_source(make_orbit_plan(
+    np.testing.assert_allclose(agent.formation.feed(agent.formation.build_source(make_orbit_plan(
         ["drone_1"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1)), t0 + 1.42 + 30.0), [3.0 * math.exp(-1.0), 0.0, 0.0], atol=0.02)

@@ -83,7 +83,7 @@ def test_agent_flies_orbit_refuses_bad_input_and_lands(flight):
 
     from flightdata.flightlog import FlightLog
 
-    log = FlightLog(fl.tmp / "drone_1.s001.mcap")
+    log = FlightLog(fl.tmp / "drone_1.s001.mcap")  # the agent's first (only) sortie
     assert log.finalised
     counts = log.topic_counts()
     states = log.read_topic("state", VehicleState)

@@ -7,7 +7,6 @@ import pytest
 
 from shared_msgs import OrbitPlan
 from onboard.orbit import (
-    HoldSource,
     OrbitController,
     evenly_spaced_phases,
     gimbal_pitch_to_point_rad,
@@ -15,6 +14,7 @@ from onboard.orbit import (
     slot_state,
     yaw_to_point_rad,
 )
+from onboard.setpoint import HoldSource
 
 T0 = 1_700_000_000.0
 

@@ -9,7 +9,7 @@ from sim_vehicle_helpers import fast_forward
 from simulator.config import SimConfig
 from simulator.vehicle import autopilot as ap
 from simulator.vehicle.autopilot import SimVehicle
-from simulator.vehicle.controller import Setpoint
+from simulator.vehicle.controller import TrajectorySetpoint
 from simulator.vehicle.px4_modes import FlightMode, MainMode
 
 
@@ -26,7 +26,7 @@ def airborne(index=0, cfg=None, alt=None) -> SimVehicle:
 
 def stream(sp_local):
     def each(v):
-        v.set_offboard_setpoint(Setpoint(position_ned_m=np.array(sp_local, float), yaw_rad=0.0))
+        v.set_offboard_setpoint(TrajectorySetpoint(position_ned_m=np.array(sp_local, float), yaw_rad=0.0))
 
     return each
 

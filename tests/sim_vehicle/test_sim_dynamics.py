@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from simulator.config import WindConfig
-from simulator.vehicle.controller import ControllerLimits, PositionController, Setpoint
+from simulator.vehicle.controller import ControllerLimits, PositionController, TrajectorySetpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2, DynamicsLimits, MultirotorDynamics
 from simulator.vehicle.environment import WindModel
 
@@ -41,8 +41,8 @@ def fly(dyn, ctrl, sp, seconds, wind=None, log=None):
 def test_limits_on_a_long_leg_climb_descent_and_yaw():
     dyn, ctrl = make()
     log = []
-    fly(dyn, ctrl, Setpoint(position_ned_m=np.array([250.0, 0.0, -40.0]), yaw_rad=math.pi), 40.0, log=log)
-    fly(dyn, ctrl, Setpoint(position_ned_m=np.array([250.0, 0.0, -5.0]), yaw_rad=math.pi), 30.0, log=log)
+    fly(dyn, ctrl, TrajectorySetpoint(position_ned_m=np.array([250.0, 0.0, -40.0]), yaw_rad=math.pi), 40.0, log=log)
+    fly(dyn, ctrl, TrajectorySetpoint(position_ned_m=np.array([250.0, 0.0, -5.0]), yaw_rad=math.pi), 30.0, log=log)
     pos, vel, acc, R, yaw = (np.array([e[i] for e in log]) for i in range(5))
     speed_xy = np.hypot(vel[:, 0], vel[:, 1])
     tilt_deg = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
@@ -60,7 +60,7 @@ def test_reaches_position_setpoint_without_big_overshoot():
     dyn, ctrl = make()
     target = np.array([20.0, -10.0, -8.0])
     log = []
-    fly(dyn, ctrl, Setpoint(position_ned_m=target, yaw_rad=0.7), 15.0, log=log)
+    fly(dyn, ctrl, TrajectorySetpoint(position_ned_m=target, yaw_rad=0.7), 15.0, log=log)
     pos = np.array([e[0] for e in log])
     assert np.linalg.norm(pos[-1] - target) < 0.1
     along = (pos - pos[0]) @ (target - pos[0]) / np.linalg.norm(target - pos[0])
@@ -70,7 +70,7 @@ def test_reaches_position_setpoint_without_big_overshoot():
 
 def test_tracks_velocity_setpoint():
     dyn, ctrl = make()
-    fly(dyn, ctrl, Setpoint(velocity_ned_m_s=np.array([3.0, -1.0, -0.5])), 6.0)
+    fly(dyn, ctrl, TrajectorySetpoint(velocity_ned_m_s=np.array([3.0, -1.0, -0.5])), 6.0)
     np.testing.assert_allclose(dyn.state.velocity_ned_m_s, [3.0, -1.0, -0.5], atol=0.05)
 
 
@@ -87,7 +87,7 @@ def test_wind_pushes_an_uncontrolled_vehicle_downwind_and_the_controller_leans_i
     # position control: holds the point, tilted west (into the wind)
     dyn, ctrl = make()
     log = []
-    fly(dyn, ctrl, Setpoint(position_ned_m=np.array([0.0, 0.0, -5.0])), 20.0, wind=wind, log=log)
+    fly(dyn, ctrl, TrajectorySetpoint(position_ned_m=np.array([0.0, 0.0, -5.0])), 20.0, wind=wind, log=log)
     max_drift = max(np.linalg.norm(e[0] - [0, 0, -5]) for e in log)
     assert 0.05 < max_drift < 3.0
     assert np.linalg.norm(dyn.state.position_ned_m - [0, 0, -5]) < 0.1
@@ -110,7 +110,7 @@ def test_ground_contact():
         and np.allclose(dyn.state.position_ned_m, 0.0)
         and dyn.state.R_world_body[2, 2] == pytest.approx(1.0)
     )
-    fly(dyn, ctrl, Setpoint(position_ned_m=np.array([0.0, 0.0, -2.0])), 4.0)  # takes off
+    fly(dyn, ctrl, TrajectorySetpoint(position_ned_m=np.array([0.0, 0.0, -2.0])), 4.0)  # takes off
     assert not dyn.state.on_ground and dyn.state.position_ned_m[2] == pytest.approx(-2.0, abs=0.05)
     for _ in range(int(3.0 / DT)):  # motors cut: falls and rests on the ground, not below it
         dyn.step(DT, np.array([0.0, 0.0, 1.0]), 0.0, 0.0, np.zeros(3), motors_on=False)
@@ -135,7 +135,7 @@ def test_attitude_from_thrust_axis_and_yaw_is_a_rotation_with_that_heading():
 
 def test_acceleration_only_setpoint_is_flown_open_loop():
     dyn, ctrl = make()
-    fly(dyn, ctrl, Setpoint(accel_ned_m_s2=np.array([1.0, 0.0, 0.0])), 3.0)
+    fly(dyn, ctrl, TrajectorySetpoint(accel_ned_m_s2=np.array([1.0, 0.0, 0.0])), 3.0)
     v = dyn.state.velocity_ned_m_s
     # 1 m/s^2 forward against linear drag 0.25/s: v = 4 (1 - exp(-0.25 t)) ~ 2.1 m/s after 3 s
     assert v[0] == pytest.approx(4.0 * (1 - math.exp(-0.75)), abs=0.2) and abs(v[2]) < 0.05

@@ -1,14 +1,16 @@
 """Thin MAVSDK 4 adapter: the agent's only door to the autopilot (PX4 or the built-in simulator).
 
 It connects as a MAVLink companion computer, asks for telemetry at the recording rate, keeps the latest
-telemetry of every stream and calls ``on_state(VehicleState)`` for each position/velocity sample
-(the autopilot's own estimate, what the recorder keeps), and turns the agent's intents into MAVSDK calls
+telemetry of every stream as one typed record (``telemetry``: :class:`onboard.agent.telemetry.Telemetry`) and
+calls ``on_state(VehicleState)`` for each position/velocity sample (the autopilot's own estimate, what the
+recorder keeps), and turns the agent's intents into MAVSDK calls
 (arm, takeoff, offboard setpoints, land, return, hold). No flight logic lives here.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import time
@@ -20,7 +22,8 @@ from shared_msgs import VehicleState, now_ns
 from skycap.errors import SkycapError
 from skycap.frames import geodetic_to_ned
 
-from onboard.orbit import Setpoint
+from onboard.agent.telemetry import LANDED_STATES, Telemetry
+from onboard.setpoint import Setpoint
 
 log = logging.getLogger(__name__)
 
@@ -29,9 +32,6 @@ __all__ = ["AutopilotError", "MavsdkAutopilot"]
 
 class AutopilotError(SkycapError):
     """The autopilot could not be reached or refused an action."""
-
-
-_LANDED = {0: "unknown", 1: "on_ground", 2: "in_air", 3: "taking_off", 4: "landing"}
 
 
 class MavsdkAutopilot:
@@ -55,20 +55,8 @@ class MavsdkAutopilot:
         self._mavsdk = None
         self._system = None
         self._tasks: list[asyncio.Task] = []
-        self.telemetry: dict = {
-            "q": (1.0, 0.0, 0.0, 0.0),
-            "armed": False,
-            "in_air": False,
-            "landed_state": "unknown",
-            "flight_mode": "unknown",
-            "battery_frac": 1.0,
-            "battery_v": 0.0,
-            "lat": math.nan, "lon": math.nan, "alt_amsl": math.nan,
-            "fix": 0, "sats": 0,
-            "h_acc_m": math.nan, "v_acc_m": math.nan,  #: the receiver's position uncertainty (1 sigma), RAW_GPS
-            "health_ok": False,
-            "pos": None, "vel": (0.0, 0.0, 0.0),
-        }
+        #: the latest of every telemetry stream (replaced, never changed in place, on each sample)
+        self.telemetry = Telemetry()
         self.last_state: VehicleState | None = None
         self._seq = 0
         self.offboard_active = False
@@ -117,42 +105,44 @@ class MavsdkAutopilot:
                 await getattr(tel, name)(2.0 if name == "set_rate_battery" else 5.0)
             except Exception as e:
                 log.debug("%s: %s failed: %s", self.drone_id, name, e)
-        T = self.telemetry
+
+        def put(**fields) -> None:
+            self.telemetry = dataclasses.replace(self.telemetry, **fields)
 
         def q(v):
-            T["q"] = (v.w, v.x, v.y, v.z)
+            put(q_world_body_wxyz=(v.w, v.x, v.y, v.z))
 
         def armed(v):
-            T["armed"] = bool(v)
+            put(armed=bool(v))
 
         def in_air(v):
-            T["in_air"] = bool(v)
+            put(in_air=bool(v))
 
         def landed(v):
-            T["landed_state"] = _LANDED.get(int(v), "unknown")
+            put(landed_state=LANDED_STATES.get(int(v), "unknown"))
 
         def mode(v):
-            T["flight_mode"] = v.name
+            put(flight_mode=v.name)
 
         def battery(v):
             if math.isfinite(v.remaining_percent):
-                T["battery_frac"] = max(0.0, min(1.0, v.remaining_percent / 100.0))
+                put(battery_remaining_frac=max(0.0, min(1.0, v.remaining_percent / 100.0)))
             if math.isfinite(v.voltage_v):
-                T["battery_v"] = v.voltage_v
+                put(battery_voltage_v=v.voltage_v)
 
         def position(v):
-            T["lat"], T["lon"], T["alt_amsl"] = v.latitude_deg, v.longitude_deg, v.absolute_altitude_m
+            put(latitude_deg=v.latitude_deg, longitude_deg=v.longitude_deg, altitude_amsl_m=v.absolute_altitude_m)
 
         def gps(v):
-            T["fix"], T["sats"] = int(v.fix_type), int(v.num_satellites)
+            put(gps_fix_type=int(v.fix_type), gps_num_satellites=int(v.num_satellites))
 
         def raw_gps(v):
             h, vv = float(v.horizontal_uncertainty_m), float(v.vertical_uncertainty_m)
-            T["h_acc_m"] = h if math.isfinite(h) and 0 < h < 90 else math.nan
-            T["v_acc_m"] = vv if math.isfinite(vv) and 0 < vv < 90 else math.nan
+            put(horizontal_accuracy_m=h if math.isfinite(h) and 0 < h < 90 else math.nan,
+                vertical_accuracy_m=vv if math.isfinite(vv) and 0 < vv < 90 else math.nan)
 
         def health(v):
-            T["health_ok"] = bool(v.is_global_position_ok and v.is_home_position_ok and v.is_armable)
+            put(health_ok=bool(v.is_global_position_ok and v.is_home_position_ok and v.is_armable))
 
         subs = [
             (tel.subscribe_attitude_quaternion, q), (tel.subscribe_armed, armed), (tel.subscribe_in_air, in_air),
@@ -183,9 +173,9 @@ class MavsdkAutopilot:
         if self.local_to_world_ned_m is None:
             # The autopilot's local frame is about its EKF origin: find where that is in the world frame
             # from the global position (same estimate), averaged over a few samples.
-            if T["fix"] < 3 or not math.isfinite(T["lat"]) or T["lat"] == 0.0:
+            if T.gps_fix_type < 3 or not math.isfinite(T.latitude_deg) or T.latitude_deg == 0.0:
                 return
-            world = geodetic_to_ned(T["lat"], T["lon"], T["alt_amsl"], *self.origin)
+            world = geodetic_to_ned(T.latitude_deg, T.longitude_deg, T.altitude_amsl_m, *self.origin)
             self._offset_acc.append(world - local)
             if len(self._offset_acc) < self._offset_samples:
                 return
@@ -193,29 +183,17 @@ class MavsdkAutopilot:
             log.info("%s: autopilot local origin at world NED %s m", self.drone_id,
                      np.round(self.local_to_world_ned_m, 2).tolist())
         w = local + self.local_to_world_ned_m
-        T["pos"] = (float(w[0]), float(w[1]), float(w[2]))
-        T["vel"] = (vel.north_m_s, vel.east_m_s, vel.down_m_s)
+        self.telemetry = T = dataclasses.replace(T, position_ned_m=(float(w[0]), float(w[1]), float(w[2])),
+                                                 velocity_ned_m_s=(vel.north_m_s, vel.east_m_s, vel.down_m_s))
         self._seq += 1
-        q = T["q"] if all(math.isfinite(x) for x in T["q"]) else (1.0, 0.0, 0.0, 0.0)
-        extra = {}
-        if math.isfinite(T["h_acc_m"]) and math.isfinite(T["v_acc_m"]):
-            # the receiver's reported accuracy (GPS ~1 m, RTK ~cm); without it the message's default (1 m^2)
-            extra["position_cov_m2"] = (T["h_acc_m"] ** 2, T["h_acc_m"] ** 2, T["v_acc_m"] ** 2)
-        st = VehicleState(
-            header=VehicleState.make_header(self.drone_id, now_ns(), self._seq),
-            position_ned_m=T["pos"], velocity_ned_m_s=T["vel"], q_world_body=q, **extra,
-            latitude_deg=_finite(T["lat"]), longitude_deg=_finite(T["lon"]), altitude_amsl_m=_finite(T["alt_amsl"]),
-            gps_fix_type=T["fix"], gps_num_satellites=T["sats"],
-            battery_remaining_frac=T["battery_frac"], battery_voltage_v=T["battery_v"],
-            flight_mode=T["flight_mode"], armed=T["armed"], landed_state=T["landed_state"], health_ok=T["health_ok"],
-        )
+        st = T.vehicle_state(self.drone_id, now_ns(), self._seq)
         self.last_state = st
         if self.on_state is not None:
             self.on_state(st)
 
     async def wait_healthy(self, timeout_s: float) -> None:
         t_end = time.monotonic() + timeout_s
-        while not (self.telemetry["health_ok"] and self.telemetry["pos"] is not None):
+        while not (self.telemetry.health_ok and self.telemetry.position_ned_m is not None):
             if time.monotonic() > t_end:
                 raise AutopilotError(
                     f"{self.drone_id}: autopilot not healthy after {timeout_s:.0f} s (needs GPS fix, home "
@@ -317,7 +295,3 @@ class MavsdkAutopilot:
         if self._mavsdk is not None:
             self._mavsdk.destroy()
             self._mavsdk = None
-
-
-def _finite(x: float) -> float:
-    return float(x) if math.isfinite(x) else 0.0

@@ -1,0 +1,53 @@
+"""The agent process (``skycap agent``): transport, recorder and autopilot opened, the agent run until a signal."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import signal
+
+from comms.transport import Transport
+from flightdata.folder import Sortie
+from flightdata.recorder import Recorder
+from onboard.agent.autopilot import MavsdkAutopilot
+from onboard.agent.loop import Agent
+from onboard.config import AgentConfig
+from skycap.config import save_config
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run_agent"]
+
+
+async def run_agent(cfg: AgentConfig) -> int:
+    """Process entry: open the transport and the recorder, run the agent until SIGTERM/SIGINT."""
+    cfg.validate()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    recorder = None
+    if cfg.record.enabled:
+        # each start is a new sortie: a new file, so a restart never touches the last recording
+        recorder = Recorder.new_sortie(cfg.record.dir, cfg.drone_id,
+                                       metadata={"fleet": cfg.fleet, "connection": cfg.connection})
+        save_config(cfg, Sortie.of(recorder.path).config_path)
+    bus = Transport.open(cfg.transport, node_id=cfg.drone_id)
+    origin = (cfg.origin.lat_deg, cfg.origin.lon_deg, cfg.origin.alt_m)
+    agent = Agent(cfg, bus, MavsdkAutopilot(cfg.drone_id, origin=origin), recorder)
+    try:
+        await agent.run(stop)
+    finally:
+        if cfg.mode == "track" and recorder is not None:
+            try:
+                p = Sortie.of(recorder.path).track_stats_path  # this sortie's counters, beside its recording
+                p.write_text(json.dumps(agent.tracking_stats()))
+            except Exception as e:
+                log.error("%s: writing the tracking statistics failed: %s", cfg.drone_id, e)
+        if recorder is not None:
+            recorder.close()
+        bus.close()
+    log.info("%s: agent stopped (pid %d)", cfg.drone_id, os.getpid())
+    return 0

@@ -1,0 +1,259 @@
+"""The agent's components, each alone: the outbox (publishing + recording), the teammates' states, the setpoint
+source chosen by ``mode``, the formation failsafes and the tracking capture (no network, no autopilot)."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+import time
+
+import numpy as np
+
+from flightdata.recorder import channel_name
+from groundstation.fleet import make_orbit_plan
+from onboard.agent import Agent
+from onboard.agent.failsafes import FormationFailsafes
+from onboard.agent.outbox import Outbox
+from onboard.agent.teammates import Teammates
+from onboard.agent.telemetry import Telemetry
+from onboard.agent.tracking import TrackingCapture
+from onboard.config import AgentConfig, FormationFailsafeConfig, TrackConfig
+from onboard.formation.failsafe import FailsafeLog
+from onboard.formation.source import FormationSource
+from onboard.orbit import OrbitController
+from onboard.setpoint import HoldSource
+from shared_msgs import Health, VehicleState, encode, keys
+
+
+class FakeBus:
+    def __init__(self, fail: bool = False):
+        self.fail = fail
+        self.sent: list[tuple[str, object]] = []
+
+    def publish(self, key, msg, latch=False):
+        if self.fail:
+            raise ConnectionError("network down")
+        self.sent.append((key, msg))
+        return encode(msg)
+
+
+class FakeRecorder:
+    def __init__(self, fail: bool = False):
+        self.fail = fail
+        self.records: list[tuple[str, bytes, int | None]] = []
+
+    def record(self, channel, data, log_time_ns=None):
+        if self.fail:
+            raise OSError("disk full")
+        self.records.append((channel, data, log_time_ns))
+
+
+class FakeAutopilot:
+    def __init__(self):
+        self.telemetry = Telemetry(armed=True, in_air=True, flight_mode="OFFBOARD", landed_state="in_air",
+                                   position_ned_m=(8.0, 0.0, -6.0), health_ok=True)
+        self.on_state = None
+
+
+def _state(d: str, pos, t_ns: int | None = None, vel=(0.0, 0.0, 0.0), landed="in_air", cov=(1.0, 1.0, 1.0)):
+    return VehicleState(header=VehicleState.make_header(d, t_ns), position_ned_m=tuple(pos), velocity_ned_m_s=tuple(vel),
+                        q_world_body=(1.0, 0.0, 0.0, 0.0), landed_state=landed, position_cov_m2=tuple(cov))
+
+
+# --- outbox ----------------------------------------------------------------------------------------------
+def test_outbox_publishes_and_records_what_it_sent_even_when_the_network_is_down(caplog):
+    rec, bus = FakeRecorder(), FakeBus()
+    out = Outbox("f", "drone_1", bus, rec)
+    assert out.key(keys.HEALTH) == keys.drone_key("f", "drone_1", keys.HEALTH)
+    h = Health(header=Health.make_header("drone_1"), role="agent", state="idle", ok=True)
+    out.publish(keys.HEALTH, h)
+    assert bus.sent == [(out.key(keys.HEALTH), h)]
+    assert rec.records[-1][0] == channel_name(out.key(keys.HEALTH), "drone_1")
+    bus.fail = True
+    out.publish(keys.HEALTH, h)  # a dead network: logged, still recorded
+    assert len(rec.records) == 2 and len(bus.sent) == 1
+    rec.fail = True
+    with caplog.at_level(logging.ERROR):
+        for _ in range(3):
+            out.record(out.key(keys.STATE), b"x")
+    assert sum("recording on" in r.message for r in caplog.records) == 1  # a failing recorder: said once
+    Outbox("f", "drone_1", FakeBus(), None).record("k", b"x")  # no recorder: nothing to do
+
+
+# --- teammates -------------------------------------------------------------------------------------------
+def test_teammates_keep_the_others_latest_states():
+    tm = Teammates("drone_1")
+    tm.note("drone_1", _state("drone_1", (0, 0, -5)), 1.0, 100.0)  # our own: not a teammate
+    a = _state("drone_2", (1, 2, -5))
+    tm.note("drone_2", a, 2.0, 200.0)
+    b = _state("drone_2", (3, 2, -5))
+    tm.note("drone_2", b, 3.0, 300.0)
+    assert tm.states == {"drone_2": b} and tm.seen_unix_s == {"drone_2": 300.0}
+    assert tm.positions == {"drone_2": ((3.0, 2.0, -5.0), 3.0)}
+
+
+# --- setpoint source by mode ------------------------------------------------------------------------------
+def test_the_setpoint_source_follows_the_configured_mode():
+    plan = make_orbit_plan(["drone_1"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.2, 1)
+    st = _state("drone_1", (8.0, 0.0, -6.0), int(time.time() * 1e9))
+    t = time.time()
+
+    orbit = Agent(AgentConfig(drone_id="drone_1", fleet="f"), FakeBus(), FakeAutopilot())
+    assert orbit.tracking is None and orbit.formation is None and orbit.failsafes is None
+    assert "detections" not in orbit.rates
+    src = asyncio.run(orbit.source_for(plan))
+    assert isinstance(src, OrbitController)
+    ref = OrbitController(plan, "drone_1", orbit.cfg.flight.approach_speed_m_s, orbit.cfg.flight.approach_climb_m_s)
+    sp, sp_ref = orbit.next_setpoint(src, t, st), ref.update(t, np.asarray(st.position_ned_m), np.zeros(3), 0.0)
+    np.testing.assert_array_equal(sp.position_ned_m, sp_ref.position_ned_m)
+    assert sp.yaw_rad == sp_ref.yaw_rad and sp.gimbal_pitch_rad == sp_ref.gimbal_pitch_rad
+
+    bus = FakeBus()
+    track = Agent(AgentConfig(drone_id="drone_1", fleet="f", mode="track"), bus, FakeAutopilot())
+    assert track.rates["detections"] is track.tracking.detections_rate
+    src = asyncio.run(track.source_for(plan))
+    assert isinstance(src, FormationSource) and track.failsafes.active
+    # a pause's hold in track mode: flown as it is (no offset, no MPC step, nothing shared)
+    hold = HoldSource((1.0, 2.0, -5.0), 0.3)
+    sp = track.next_setpoint(hold, t, st)
+    np.testing.assert_array_equal(sp.position_ned_m, [1.0, 2.0, -5.0])
+    assert sp.yaw_rad == 0.3 and bus.sent == [] and track.formation.mpc_solve_ms == []
+    # the formation source: one MPC step, its plan shared with the teammates
+    sp = track.next_setpoint(src, t, st)
+    assert np.all(np.isfinite(sp.position_ned_m)) and len(track.formation.mpc_solve_ms) == 1
+    assert [k for k, _ in bus.sent] == [keys.drone_key("f", "drone_1", keys.FORMATION_PLAN)]
+    stats = track.tracking_stats()
+    assert stats["mode"] == "track" and stats["detections_source"] == "sim" and len(stats["mpc_solve_ms"]) == 1
+    assert orbit.tracking_stats()["mpc_solve_ms"] == [] and orbit.tracking_stats()["failsafe_events"] == []
+
+
+# --- formation failsafes ----------------------------------------------------------------------------------
+class FakeFormationSource:
+    """What the failsafes act on: slot angle, hold / search (the FormationSource's interface)."""
+
+    def __init__(self):
+        self.slot_angle_rad = 0.0
+        self.hold_position_ned_m = None
+        self.search_yaw_rate_rad_s = 0.0
+        self.last_result = None
+
+    @property
+    def holding(self):
+        return self.hold_position_ned_m is not None
+
+    def hold(self, position_ned_m=None, search_yaw_rate_rad_s=0.0):
+        self.hold_position_ned_m = None if position_ned_m is None else np.asarray(position_ned_m, float)
+        self.search_yaw_rate_rad_s = search_yaw_rate_rad_s if position_ned_m is not None else 0.0
+
+
+def test_formation_failsafes_alone():
+    mission, warnings = [], []
+    fs = FormationFailsafes("drone_1", FormationFailsafeConfig(), lambda r, a: mission.append((r, a)), warnings.append)
+    plan = make_orbit_plan(["drone_1"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1)
+    assert not fs.active
+    t0 = 1000.0
+    fs.start(plan, t0)
+    assert fs.active and fs.t_formation_start_s == t0
+    src, own = FakeFormationSource(), np.array([8.0, 0.0, -6.0])
+
+    def step(t_s, battery=0.9):
+        inp = fs.inputs(t_s, own, estimate=None, person_guess_ned_m=np.zeros(3), src=src, teammate_states={},
+                        teammates_seen_s={}, battery_remaining_frac=battery, operator_angles_rad={"drone_1": 0.0},
+                        consecutive_fallbacks=0)
+        fs.act(src, inp, own)
+
+    step(t0 + 1.0)  # within the acquisition grace time: fly on
+    assert not src.holding and fs.log.events == [] and fs.last_response.hold is False
+    step(t0 + 25.0)  # never seen after the grace time: hold and search
+    assert src.holding and src.search_yaw_rate_rad_s == math.radians(30.0)
+    np.testing.assert_array_equal(src.hold_position_ned_m, own)
+    assert fs.log.events[-1]["action"] == "hold_and_search" and "hold_and_search" in warnings[-1]
+    step(t0 + 26.0, battery=0.2)  # low battery: return through the mission
+    assert mission and mission[-1][1] == "return" and fs.log.counts["return"] == 1
+    off = FormationFailsafes("drone_1", FormationFailsafeConfig(enabled=False), lambda r, a: None, warnings.append)
+    off.start(plan, t0)
+    assert not off.active and off.t_formation_start_s is None
+
+
+# --- tracking capture -------------------------------------------------------------------------------------
+def test_tracking_capture_alone_takes_a_gps_jump_back():
+    published, warnings = [], []
+    events = FailsafeLog("drone_1")
+    cap = TrackingCapture("drone_1", TrackConfig(), lambda topic, msg: published.append(topic), events, warnings.append)
+    assert cap.detector_worker is None and cap.stats()["detections_source"] == "sim"
+    cap.on_state(_state("drone_1", (0.0, 0.0, -0.3), int(10e9), landed="on_ground", cov=(0.04, 0.04, 0.09)))
+    assert cap.stage.own_ground_down_m == -0.3
+    np.testing.assert_allclose(cap.stage.own_position_var_m2, [0.04, 0.04, 0.09])
+    cap.on_state(_state("drone_1", (0.04, 0.0, -0.3), int(10.02e9), vel=(2.0, 0.0, 0.0)))  # explained by its speed
+    assert events.events == [] and not cap.stage.position_correction(int(20e9)).any()
+    cap.on_state(_state("drone_1", (3.08, 0.0, -0.3), int(10.04e9), vel=(2.0, 0.0, 0.0)))  # +3 m in 20 ms
+    assert events.events[-1]["action"] == "gps_jump" and events.counts == {"estimator:gps_jump": 1}
+    assert warnings and warnings[-1].startswith("GPS jump")
+    np.testing.assert_allclose(cap.stage.position_correction(int(10.04e9)), [3.0, 0.0, 0.0], atol=0.02)
+    cap.publish_target(100.0)  # no track yet: nothing to publish
+    assert published == [] and cap.malformed_counts() == (0, 0)
+    off = TrackingCapture("drone_1", TrackConfig(gps_jump_threshold_m=0.0), published.append, FailsafeLog("d"), warnings.append)
+    off.on_state(_state("drone_1", (0.0, 0.0, -5.0), int(10e9)))
+    off.on_state(_state("drone_1", (9.0, 0.0, -5.0), int(10.02e9)))
+    assert not off.stage.position_correction(int(20e9)).any()
+
+
+# --- vehicle supervisor -----------------------------------------------------------------------------------
+def test_vehicle_supervisor_alone():
+    from onboard.agent.supervisor import VehicleSupervisor
+    from onboard.mission import Mission, State
+
+    calls: list = []
+    flowing = [True]
+    ap = FakeAutopilot()
+    ap.telemetry = Telemetry(armed=True, in_air=True, flight_mode="OFFBOARD", landed_state="in_air",
+                             position_ned_m=(0.0, 0.0, -5.0), health_ok=True, battery_remaining_frac=0.9)
+    ap.offboard_active, ap.offboard_since_s = True, 0.0
+    mission, tm = Mission(), Teammates("drone_1")
+    mission.set_plan(make_orbit_plan(["drone_1", "drone_2"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1))
+    mission.state = State.ORBIT
+    sup = VehicleSupervisor(AgentConfig(drone_id="drone_1"), mission, ap, tm,
+                            failsafe=lambda r, a: calls.append(("failsafe", a, r)),
+                            stop_setpoints=lambda: calls.append(("stop",)), resume_offboard=lambda: calls.append(("resume",)),
+                            setpoints_flowing=lambda: flowing[0], warn=lambda w: calls.append(("warn", w)))
+    sup.on_gcs_heartbeat()
+    sup.check()
+    assert calls == [] and sup.gcs_seen
+    # PX4's stream-loss HOLD while the setpoints flow: switched back
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="HOLD")
+    sup.check()
+    assert calls[-1] == ("resume",) and ("warn", "autopilot left offboard for HOLD, resumed") in calls
+    # another drone too close: the configured separation action (hold)
+    tm.note("drone_2", _state("drone_2", (1.0, 0.0, -5.0)), time.monotonic(), time.time())
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="OFFBOARD")
+    calls.clear()
+    sup.check()
+    assert calls[0][:2] == ("failsafe", "hold") and "separation: drone_2" in calls[0][2]
+    # the ground station falls silent; low battery
+    calls.clear()
+    sup.t_last_gcs_s -= 10.0
+    ap.telemetry = dataclasses.replace(ap.telemetry, battery_remaining_frac=0.1)
+    sup.check()
+    assert [c[1] for c in calls if c[0] == "failsafe"][:2] == ["land", "land"]
+    assert any("heartbeat lost" in c[2] for c in calls if c[0] == "failsafe")
+    assert any("low battery 10%" in c[2] for c in calls if c[0] == "failsafe")
+
+
+# --- statistics -------------------------------------------------------------------------------------------
+def test_statistics_sum_the_subscriptions_counters():
+    from comms.transport import TopicStats
+    from onboard.agent.stats import malformed_detections, transport_counts
+
+    class Sub:
+        def __init__(self, key_expr, **counts):
+            self.key_expr, self.stats = key_expr, TopicStats(**counts)
+
+    subs = [Sub("f/drone/*/detections", received=10, malformed=2, fault_judged=5, fault_dropped=1),
+            Sub("f/drone/drone_1/sim/detections", received=4, malformed=1, fault_delayed=2),
+            Sub("f/drone/*/state", received=100, malformed=3)]
+    assert transport_counts(subs) == {"received": 114, "malformed": 6, "fault_judged": 5, "fault_dropped": 1,
+                                      "fault_delayed": 2}
+    assert malformed_detections(subs, None) == {"refused_by_codec": 3, "invalid_content": 0,
+                                                "nonfinite_measurements": 0, "total": 3}
