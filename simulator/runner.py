@@ -11,7 +11,7 @@ wake-up per tick instead of N.
 Hook API (for the scene/person/camera part, a truth publisher, a recorder)::
 
     world = SimWorld(cfg)
-    world.add_tick_hook(lambda t_ns, truths: ..., rate_hz=30)   # truths: list[VehicleTruth], world NED
+    world.add_tick_hook(lambda t_ns, truths: ..., rate_hz=30)   # truths: list[VehicleSnapshot], world NED
     await world.run(stop_event)          # or: world.start_in_thread(); ...; world.stop()
 
 ``t_ns`` is wall-clock time (``time.time_ns()``) of the tick, the same clock as the MAVLink
@@ -30,14 +30,14 @@ from dataclasses import dataclass
 from typing import Callable
 
 from simulator.config import SimConfig
-from simulator.vehicle.autopilot import SimVehicle, VehicleTruth
+from simulator.vehicle.autopilot import SimVehicle, VehicleSnapshot
 from simulator.vehicle.environment import WindModel
 from simulator.vehicle.mavlink_endpoint import GCS_RATES, MavlinkEndpoint
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
-TickHook = Callable[[int, list[VehicleTruth]], None]
+TickHook = Callable[[int, list[VehicleSnapshot]], None]
 
 
 class SimPortError(SkycapError):
@@ -83,7 +83,7 @@ class SimWorld:
     def remove_tick_hook(self, fn: TickHook) -> None:
         self._hooks = [h for h in self._hooks if h.fn is not fn]
 
-    def truths(self, t_ns: int | None = None) -> list[VehicleTruth]:
+    def truths(self, t_ns: int | None = None) -> list[VehicleSnapshot]:
         """Ground truth of every vehicle now (copies)."""
         t_ns = time.time_ns() if t_ns is None else t_ns
         return [v.truth_snapshot(t_ns) for v in self.vehicles]

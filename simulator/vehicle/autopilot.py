@@ -38,8 +38,9 @@ OFFBOARD_LOSS_ACTIONS = {"hold": 5, "land": 4}  # PX4 COM_OBL_RC_ACT values
 
 
 @dataclass
-class VehicleTruth:
-    """Ground truth of one vehicle at one instant, world NED frame (plus what the autopilot believes).
+class VehicleSnapshot:
+    """The simulator's state of one vehicle at one instant, world NED frame (plus what the autopilot believes):
+    the truth that :class:`simulator.truth.TruthPublisher` publishes as ``shared_msgs.VehicleTruth``.
 
     Shapes: positions/velocities/accelerations (3,), rotations (3,3) body FRD -> world NED.
     """
@@ -191,9 +192,9 @@ class SimVehicle:
     def landed(self) -> bool:
         return self.dyn.state.on_ground
 
-    def truth_snapshot(self, t_ns: int) -> VehicleTruth:
+    def truth_snapshot(self, t_ns: int) -> VehicleSnapshot:
         s = self.dyn.state
-        return VehicleTruth(
+        return VehicleSnapshot(
             index=self.index,
             system_id=self.system_id,
             t_ns=t_ns,
