@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from simulator.config import SimConfig
-from simulator.vehicle.controller import ControllerGains, ControllerLimits, PositionController, TrajectorySetpoint
+from simulator.vehicle.controller import ControllerLimits, PositionController, TrajectorySetpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2, DynamicsLimits, MultirotorDynamics
 from simulator.vehicle.environment import Battery, EstimatorErrorModel
 from simulator.vehicle.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, ParamStore
@@ -121,11 +121,7 @@ class SimVehicle:
             position_ned_m=spawn,
             yaw_rad=math.radians(cfg.vehicles.spawn_yaw_deg),
         )
-        c = cfg.controller
-        self.ctrl = PositionController(
-            ControllerLimits(),
-            ControllerGains(c.pos_xy_p, c.pos_z_p, c.vel_xy_p, c.vel_xy_i, c.vel_z_p, c.vel_z_i, c.yaw_p),
-        )
+        self.ctrl = PositionController(ControllerLimits.from_config(L), cfg.controller)
         self.est_model = EstimatorErrorModel(
             cfg.estimator, seed=cfg.estimator.seed * 1000 + index if seed is None else seed
         )

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from simulator.config import ControllerConfig, LimitsConfig
 from simulator.vehicle.dynamics import GRAVITY_M_S2
 
 NAN3 = np.full(3, np.nan)
@@ -47,26 +48,26 @@ class TrajectorySetpoint:
 
 @dataclass
 class ControllerLimits:
-    max_speed_xy_m_s: float = 12.0
-    max_speed_up_m_s: float = 3.0
-    max_speed_down_m_s: float = 1.5
-    max_accel_xy_m_s2: float = 5.0
-    max_accel_z_m_s2: float = 4.0
-    max_tilt_rad: float = math.radians(35.0)
-    max_yaw_rate_rad_s: float = math.radians(60.0)
+    """The controller's envelope in SI units, built from the simulator's ``[limits]`` (PX4's MPC_* values, which
+    the autopilot's parameters then update); the thrust bounds are the airframe's."""
+
+    max_speed_xy_m_s: float
+    max_speed_up_m_s: float
+    max_speed_down_m_s: float
+    max_accel_xy_m_s2: float
+    max_accel_z_m_s2: float
+    max_tilt_rad: float
+    max_yaw_rate_rad_s: float
     min_thrust_m_s2: float = 0.12 * GRAVITY_M_S2
     max_thrust_m_s2: float = 1.9 * GRAVITY_M_S2
 
-
-@dataclass
-class ControllerGains:
-    pos_xy_p: float = 0.95
-    pos_z_p: float = 1.0
-    vel_xy_p: float = 1.8
-    vel_xy_i: float = 1.0
-    vel_z_p: float = 4.0
-    vel_z_i: float = 2.0
-    yaw_p: float = 2.8
+    @classmethod
+    def from_config(cls, limits: LimitsConfig | None = None) -> ControllerLimits:
+        L = limits or LimitsConfig()
+        return cls(max_speed_xy_m_s=L.max_speed_xy_m_s, max_speed_up_m_s=L.max_speed_up_m_s,
+                   max_speed_down_m_s=L.max_speed_down_m_s, max_accel_xy_m_s2=L.max_accel_xy_m_s2,
+                   max_accel_z_m_s2=L.max_accel_z_m_s2, max_tilt_rad=math.radians(L.max_tilt_deg),
+                   max_yaw_rate_rad_s=math.radians(L.max_yaw_rate_deg_s))
 
 
 def _sqrt_braking_speed(err_m: float, p_gain: float, accel_m_s2: float) -> float:
@@ -78,9 +79,9 @@ def _sqrt_braking_speed(err_m: float, p_gain: float, accel_m_s2: float) -> float
 class PositionController:
     """Stateful (integrators, smoothed velocity setpoint); call :meth:`update` at the physics rate."""
 
-    def __init__(self, limits: ControllerLimits | None = None, gains: ControllerGains | None = None):
-        self.limits = limits or ControllerLimits()
-        self.gains = gains or ControllerGains()
+    def __init__(self, limits: ControllerLimits | None = None, gains: ControllerConfig | None = None):
+        self.limits = limits or ControllerLimits.from_config()
+        self.gains = gains or ControllerConfig()
         self.reset()
 
     def reset(self, velocity_ned_m_s: np.ndarray | None = None) -> None:

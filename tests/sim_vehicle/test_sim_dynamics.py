@@ -17,7 +17,7 @@ def make(pos=(0.0, 0.0, -5.0), yaw=0.0):
     dyn = MultirotorDynamics(DynamicsLimits(max_tilt_rad=math.radians(35.0) * 1.05), position_ned_m=pos, yaw_rad=yaw)
     dyn.state.on_ground = pos[2] >= 0
     dyn.state.thrust_m_s2 = GRAVITY_M_S2 if pos[2] < 0 else 0.0
-    return dyn, PositionController(ControllerLimits())
+    return dyn, PositionController(ControllerLimits.from_config())
 
 
 def fly(dyn, ctrl, sp, seconds, wind=None, log=None):
