@@ -8,7 +8,9 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.helpers.flight import Flight
+from tests.helpers.paths import REPO
+
 SHARED_DATA = Path(os.environ.get("SKYCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
@@ -22,3 +24,18 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def cmu_dir(shared_data: Path) -> Path:
     return shared_data / "mocap" / "cmu"
+
+
+@pytest.fixture
+def flight(tmp_path):
+    """``flight(n, sim_overrides)`` -> a :class:`tests.helpers.flight.Flight`, closed after the test."""
+    made = []
+
+    def make(n: int = 1, sim_overrides=None) -> Flight:
+        f = Flight(tmp_path, n, sim_overrides)
+        made.append(f)
+        return f
+
+    yield make
+    for f in made:
+        f.close()

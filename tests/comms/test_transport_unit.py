@@ -11,6 +11,7 @@ from comms.transport import Transport, TransportConfig, TransportError
 from tests.helpers.ports import free_tcp_port
 from shared_msgs import OrbitPlan, VehicleState, keys
 from skycap.config import load_config
+from tests.helpers.paths import REPO
 
 
 def state(i: int) -> VehicleState:
@@ -180,7 +181,7 @@ def test_process_exits_without_close(tmp_path) -> None:
     from flightdata.flightlog import FlightLog
 
     here = Path(__file__).resolve().parent
-    env = dict(os.environ, PYTHONPATH=str(here.parents[1]) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     mcap = tmp_path / "leaky.mcap"
     r = subprocess.run(
         [sys.executable, str(here / "exit_without_close.py"), f"tcp/127.0.0.1:{free_tcp_port()}", str(mcap)],

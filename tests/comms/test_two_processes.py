@@ -20,9 +20,9 @@ import pytest
 from comms.transport import Transport, TransportConfig
 from tests.helpers.ports import free_tcp_port
 from shared_msgs import Command, CommandAck, Health, VehicleState, encode, keys
+from tests.helpers.paths import REPO
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[1]
 FLEET = "t2p"
 NODE = "drone_7"
 

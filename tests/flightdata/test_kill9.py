@@ -16,9 +16,9 @@ from mcap.reader import NonSeekingReader, make_reader
 from flightdata.flightlog import FlightLog, recover
 from flightdata.recorder import Recorder
 from shared_msgs import CameraFrame, VehicleState
+from tests.helpers.paths import REPO
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[1]
 FLUSH_S = 0.5
 
 

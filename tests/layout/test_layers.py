@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers.paths import REPO
+
+
 HEAVY = ("torch", "PySide6", "anny", "rerun", "pymavlink")
 
 # Runs a skycap command with the extras' packages made unimportable, as on a drone's base install.

@@ -19,8 +19,8 @@ from tests.helpers.ports import free_tcp_port
 from shared_msgs import keys
 from shared_msgs.messages import CameraFrame, CameraInfo, Keypoints2D, SimTruth, VehicleState, VehicleTruth
 from simulator.scene.person import PersonSim
+from tests.helpers.paths import REPO
 
-REPO = Path(__file__).resolve().parents[2]
 FLEET = "camtest"
 DRONE = "drone_1"
 

@@ -13,8 +13,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from tests.helpers.paths import REPO
 
-CACHE = Path(os.environ.get("ANNY_CACHE_DIR", Path(__file__).resolve().parents[2] / ".cache" / "anny"))
+CACHE = Path(os.environ.get("ANNY_CACHE_DIR", REPO / ".cache" / "anny"))
 
 
 @pytest.fixture(scope="session")

@@ -22,8 +22,9 @@ from reconstruction.monocular.lifter import (
     training_batch,
 )
 from reconstruction.monocular.single_frame import initialise
+from tests.helpers.paths import REPO
 
-MOTIONS = Path(__file__).resolve().parents[2] / "simulator" / "data" / "motions"
+MOTIONS = REPO / "simulator" / "data" / "motions"
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,9 @@ from pathlib import Path
 
 from onboard.config import AgentConfig
 from skycap.config import load_config
+from tests.helpers.paths import REPO
 
-DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+DEPLOY = REPO / "deploy"
 
 
 def test_example_config_loads_and_validates():

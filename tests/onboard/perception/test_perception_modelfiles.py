@@ -12,8 +12,8 @@ import pytest
 from onboard.detector import detector as det_mod
 from onboard.detector.modelfile import MANIFEST, ModelFileError, resolve_model, sha256_file
 from reconstruction.keypoints import detectors as kp_mod
+from tests.helpers.paths import REPO
 
-REPO = Path(__file__).resolve().parents[2]
 
 
 def _manifest(folder: Path) -> dict[str, str]:

@@ -1,5 +1,6 @@
-"""Fixtures that start real pieces: the built-in simulator (in a thread), a Zenoh rendezvous, the fleet
-client, and agent processes (``python -m apps.cli agent``), all on non-default ports."""
+"""A simulated flight for tests: the built-in simulator (in a thread), a Zenoh rendezvous, the fleet client, and
+agent processes (``python -m apps.cli agent``), all on non-default ports. The ``flight`` fixture (tests/conftest.py)
+makes them."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ import uuid
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from tests.helpers.ports import free_udp_base
 
@@ -71,17 +71,3 @@ class Flight:
         self.fleet.close()
         self.bus.close()
         self.world.stop()
-
-
-@pytest.fixture
-def flight(tmp_path):
-    made = []
-
-    def make(n: int = 1, sim_overrides=None) -> Flight:
-        f = Flight(tmp_path, n, sim_overrides)
-        made.append(f)
-        return f
-
-    yield make
-    for f in made:
-        f.close()

@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tracking"))
-from tracking_scene import camera_info, detections_message, person_center  # noqa: E402
+from tracking_scene import camera_info, detections_message, person_center
 
 from evaluation.flight import lost_time_s
 from onboard.tracking.roi import box_in_roi

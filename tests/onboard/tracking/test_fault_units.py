@@ -10,8 +10,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tracking"))
-from tracking_scene import camera_info, detections_message  # noqa: E402
+from tracking_scene import camera_info, detections_message
 
 from onboard.tracking.stage import TrackingStage, box_problem, detection_problem
 from shared_msgs.messages import BoundingBox
