@@ -20,7 +20,10 @@ from pathlib import Path
 from reconstruction.result import Progress, ReconstructionError, ReconstructionResult, report
 from reconstruction.capture import Capture
 from reconstruction.flight import recordings_summary
-from reconstruction.multiview.fit import FitConfig, FitResult
+from reconstruction.multiview.fit import FitConfig, FitResult, fit_capture
+from reconstruction.export import export_motion
+from reconstruction.multiview.flight import output_grid, read_flight
+from skycap.config import save_config
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +68,6 @@ def read_capture(flight, config: MultiviewConfig | None = None, *, sortie: int |
                  progress: Progress | None = None) -> Capture:
     """The capture of a flight folder for this method (:func:`reconstruction.multiview.flight.read_flight`:
     at least two drones with keypoints; the whole flight or one ``sortie``)."""
-    from reconstruction.multiview.flight import read_flight
 
     config = config or MultiviewConfig()
     return read_flight(flight, gimbal_stabilised=config.gimbal_stabilised, use_refined_poses=config.use_refined_poses,
@@ -80,10 +82,6 @@ def run(capture: Capture, config: MultiviewConfig | None = None, *, out_dir: str
     ``summary.json`` (frames, cameras, fit_seconds, outputs and, for a capture read from a flight, ``sortie`` and
     ``recordings``). progress: ``("fit", i, iters)`` per optimiser step, then ``("export", 0|1, 1)``.
     """
-    from reconstruction.export import export_motion
-    from reconstruction.multiview.fit import fit_capture
-    from reconstruction.multiview.flight import output_grid
-    from skycap.config import save_config
 
     config = config or MultiviewConfig()
     grid = output_grid(capture, config.rate_hz)

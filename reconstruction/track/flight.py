@@ -44,6 +44,13 @@ import numpy as np
 
 from flightdata.folder import FlightFolder
 from reconstruction.track.smoother import Observation, SmoothedTrack, SmootherConfig, SmootherError, smooth_track
+import msgspec
+from flightdata.flightlog import FlightLog
+from flightdata.folder import read_sim_truth
+from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M, MeasurementConfig, box_from_person, measurements_from_detections
+from onboard.tracking.roi import RoiConfig, box_in_roi, roi_from_estimate
+from shared_msgs.messages import CameraInfo, Command, Detections, Keypoints2D, TargetEstimate, VehicleState
+from skycap.camera import PinholeCamera
 
 __all__ = ["DroneRecording", "RefineConfig", "RefineResult", "read_recordings", "flight_observations", "refine_flight",
            "frame_boxes", "evaluate", "load_refined_offsets", "format_evaluation"]
@@ -138,9 +145,6 @@ def read_recordings(flight: FlightFolder | str | Path, sortie: int | None = None
                     progress: Progress | None = None) -> list[DroneRecording]:
     """Every drone of a flight folder (natural order) -> :class:`DroneRecording` (drones without detections are left
     out): the whole flight (``sortie=None``: every sortie of a drone, in sortie order) or only sortie ``sortie``."""
-    from flightdata.flightlog import FlightLog
-    from skycap.camera import PinholeCamera
-    from shared_msgs.messages import CameraInfo, Command, Detections, Keypoints2D, TargetEstimate, VehicleState
 
     flight = _folder(flight)
     logs = flight.drone_logs(sortie=sortie)
@@ -237,9 +241,7 @@ def flight_observations(recordings: list[DroneRecording], person_height_m: float
     covariance gets ``diag(camera_position_sigma_m^2 (3), camera_rotation_sigma_rad^2 (3))``. The prior std
     of drone i's offset is the median reported camera position std of its detections.
     """
-    import msgspec
 
-    from onboard.tracking.measurement import MeasurementConfig, measurements_from_detections
 
     mcfg = MeasurementConfig() if person_height_m is None else dataclasses.replace(MeasurementConfig(), person_height_m=person_height_m)
     cov = tuple(float(v) for v in np.diag([camera_position_sigma_m**2] * 3 + [camera_rotation_sigma_rad**2] * 3).reshape(-1))
@@ -283,8 +285,6 @@ def frame_boxes(track: SmoothedTrack, rec: DroneRecording, person_height_m: floa
     x, y, w, h (NaN rows where the person is behind the camera or outside the image, or outside the span), and
     frame_sortie (F,): the sortie of each frame (frame indices restart with each sortie).
     """
-    from onboard.tracking.measurement import box_from_person
-    from onboard.tracking.roi import RoiConfig, roi_from_estimate
 
     d = track.drone_ids.index(rec.drone_id)
     rcfg = RoiConfig(person_height_m=person_height_m)
@@ -317,7 +317,6 @@ def refine_recordings(recs: list[DroneRecording], config: RefineConfig | None = 
     ``camera_position_sigma_m`` left None take the onboard prior / 1 m (:func:`refine_flight` fills them from the
     flight's settings first). progress: ``("measurements", d, D)`` per drone, ``("smooth", 0|1, 1)``,
     ``("boxes", d, D)``. Writes nothing; ``summary`` has no flight-level fields (``flight_dir``, ``evaluation``)."""
-    from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M
 
     config = config or RefineConfig()
     H = float(config.person_height_m) if config.person_height_m is not None else PERSON_HEIGHT_PRIOR_M
@@ -424,7 +423,6 @@ def load_refined_offsets(flight: FlightFolder | str | Path) -> dict[str, tuple[n
 # ------------------------------------------------------------------------------------------------ evaluation
 def _read_truth(path: Path, drone_ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns (T,), person root (T, 3), drone positions (T, D, 3)) from the simulator truth."""
-    from flightdata.folder import read_sim_truth
 
     ts, person, veh, _ = read_sim_truth(path, drone_ids)
     if len(ts) < 2:
@@ -469,7 +467,6 @@ def evaluate(flight: FlightFolder | str | Path, track: SmoothedTrack, recs: list
       the live one (``roi_px`` of the shared detections, track mode), and the IoU of the smoothed person box
       with the true box.
     """
-    from onboard.tracking.roi import box_in_roi
 
     flight = _folder(flight)
     ids = track.drone_ids
