@@ -96,8 +96,7 @@ def reconstruct_flight(flight, method: str | None = None, config: Any = None, *,
         run = run_monocular
     else:
         raise ReconstructionError(f"unknown reconstruction method {method!r}; use one of {', '.join(METHODS)}")
-    log.info("%s reconstruction of %s (%s) from %s", method, flight.path,
-             "whole flight" if sortie is None else f"sortie {sortie}", cap.meta.get("recordings_used", "?"))
+    log.info("%s reconstruction of %s (%s)", method, flight.path, "whole flight" if sortie is None else f"sortie {sortie}")
     return run(cap, config, out_dir=out, progress=progress)
 
 

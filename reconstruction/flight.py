@@ -158,8 +158,7 @@ def read_capture(flight, *, sortie: int | None = None, drone_ids: Iterable[str] 
                            f"--sortie or another method")
     what = "the whole flight" if sortie is None else f"sortie {sortie}"
     log.info("read %s of %s: %s", what, flight.path, flight.describe_logs(used) or "nothing")
-    meta = {"source": "flight", "flight_dir": str(flight.path), "sortie": sortie,
-            "recordings": flight.recording_names(used), "recordings_used": flight.describe_logs(used)}
+    meta = {"source": "flight", "flight_dir": str(flight.path), "sortie": sortie, "recordings": flight.recording_names(used)}
     return Capture(cams, meta=meta)
 
 

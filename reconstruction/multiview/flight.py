@@ -10,7 +10,7 @@ import logging
 import numpy as np
 
 from reconstruction.capture import Capture, CaptureError
-from reconstruction.flight import read_capture, read_drone_log
+from reconstruction.flight import read_capture, read_drone_log  # noqa: F401  (read_drone_log: re-exported)
 
 log = logging.getLogger(__name__)
 
