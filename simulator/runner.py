@@ -164,10 +164,16 @@ class SimWorld:
                 delay = t0 + (self.ticks + 1) * dt - time.monotonic()
                 if delay > 0:
                     await asyncio.sleep(delay)
-                elif delay < -0.25:  # far behind (debugger, suspended machine): drop the backlog
-                    self.overruns += 1
-                    log.warning("simulation %.2f s behind real time; skipping ahead", -delay)
-                    t0 = time.monotonic() - self.ticks * dt
+                else:
+                    # behind real time (a loaded machine): still let the event loop read the links before each
+                    # tick, as a real autopilot keeps receiving while busy; catching up without reading them
+                    # advanced simulated time past COM_OF_LOSS_T while the agents' setpoints sat in the socket
+                    # buffers, and every vehicle fell out of offboard at once
+                    await asyncio.sleep(0)
+                    if delay < -0.25:  # far behind (debugger, suspended machine): drop the backlog
+                        self.overruns += 1
+                        log.warning("simulation %.2f s behind real time; skipping ahead", -delay)
+                        t0 = time.monotonic() - self.ticks * dt
                 self._tick(dt)
                 if status_every_s and self.t_s >= next_status:
                     next_status += status_every_s
