@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flightdata.flightlog import FlightLog
+from flightdata.flightlog import FlightLog, SortieLogs
 from flightdata.folder import FlightFolder, Sortie, natural_key, read_sim_truth
 from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
 from onboard.tracking.roi import box_in_roi
@@ -139,12 +139,6 @@ def _flight_logs(flight: FlightFolder, drone_ids: list[str], sortie: int | None)
     return logs
 
 
-def _messages(sorties: list[Sortie], topics: list[str]):
-    """The messages on ``topics`` of one drone's recordings, sortie after sortie."""
-    for s in sorties:
-        yield from FlightLog(s.path).messages(topics)
-
-
 def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt_m: float = 0.3,
                      sortie: int | None = None) -> dict:
     """The summary dict of a flight folder (see the module docstring) over every sortie of each drone, or
@@ -158,7 +152,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
     t_land = math.inf
     for d in drone_ids:
         state_t, state_p, frame_t, setpoint_hz = [], [], [], []
-        for m in _messages(logs[d], ["state", "camera/image", "health", "gcs/cmd"]):
+        for m in SortieLogs([s.path for s in logs[d]]).messages(["state", "camera/image", "health", "gcs/cmd"]):
             msg = m.msg
             if isinstance(msg, VehicleState):
                 state_t.append(msg.header.t_measurement_ns * 1e-9)
@@ -350,7 +344,7 @@ def summarize_tracking(flight_dir: str | Path, settle_s: float = 8.0, sortie: in
         rois: dict[int, tuple] = {}
         gt_boxes: dict[int, tuple] = {}
         det_t = []
-        for m in _messages(logs[d], ["target", "detections", "sim/keypoints2d_gt", "state", "gcs/cmd"]):
+        for m in SortieLogs([s.path for s in logs[d]]).messages(["target", "detections", "sim/keypoints2d_gt", "state", "gcs/cmd"]):
             msg = m.msg
             if isinstance(msg, TargetEstimate):
                 t_est.append(msg.header.t_measurement_ns * 1e-9)
