@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from comms.transport import TransportConfig
+from onboard.camera.config import CameraConfig
 from skycap.config import ConfigError
 
 __all__ = ["AgentConfig", "TrackConfig", "FormationFailsafeConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
@@ -179,12 +180,15 @@ class AgentConfig:
     transport: TransportConfig = field(default_factory=TransportConfig)
     #: record the simulator's keypoints (sim/keypoints2d) and camera frames of this drone
     record_camera: bool = True
+    #: the drone's camera: "sim" (the simulator's camera node) or a real source captured on board
+    camera: CameraConfig = field(default_factory=CameraConfig)
     #: "orbit" (fly the plan's circle around its centre) or "track" (find and follow the person: detections
     #: -> cooperative filter -> formation MPC around the fused estimate; see :class:`TrackConfig`)
     mode: str = "orbit"
     track: TrackConfig = field(default_factory=TrackConfig)
 
     def validate(self) -> "AgentConfig":
+        self.camera.validate()
         if self.mode not in ("orbit", "track"):
             raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
         if self.track.detections not in ("sim", "onnx"):

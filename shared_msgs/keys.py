@@ -9,7 +9,10 @@ messages inside carry their own per-type schema version.
 | ``skycap/v1/<fleet>/<drone>/state`` | VehicleState | agent | autopilot estimate, >= 10 Hz on the wire (recorder keeps all) |
 | ``skycap/v1/<fleet>/<drone>/health`` | Health | agent | 1-2 Hz heartbeat |
 | ``skycap/v1/<fleet>/<drone>/camera_info`` | CameraInfo | camera | on change and 1 Hz |
-| ``skycap/v1/<fleet>/<drone>/camera/image`` | CameraFrame | camera | drone-local (not needed by teammates) |
+| ``skycap/v1/<fleet>/<drone>/camera/image`` | CameraFrame | camera | full rate, drone-local (recorder, detector) |
+| ``skycap/v1/<fleet>/<drone>/camera/thumb`` | CameraFrame | camera | small JPEG at ~1 Hz for the ground station |
+| ``skycap/v1/<fleet>/<drone>/camera/status`` | CameraStatus | camera | ~1 Hz: connected, frames, dropped |
+| ``skycap/v1/<fleet>/<drone>/gimbal`` | GimbalAttitude | agent | the gimbal's reported attitude, recorded |
 | ``skycap/v1/<fleet>/<drone>/detections`` | Detections | agent | shared with teammates |
 | ``skycap/v1/<fleet>/<drone>/keypoints2d`` | Keypoints2D | detector | |
 | ``skycap/v1/<fleet>/<drone>/sim/keypoints2d`` | Keypoints2D (simulated=True) | simulator camera | noisy GT, detector "sim_noisy_gt" |
@@ -92,6 +95,9 @@ STATE = "state"
 HEALTH = "health"
 CAMERA_INFO = "camera_info"
 CAMERA_IMAGE = "camera/image"
+CAMERA_THUMB = "camera/thumb"
+CAMERA_STATUS = "camera/status"
+GIMBAL = "gimbal"
 DETECTIONS = "detections"
 KEYPOINTS2D = "keypoints2d"
 SIM_KEYPOINTS2D = "sim/keypoints2d"

@@ -29,6 +29,8 @@ __all__ = [
     "VehicleState",
     "CameraInfo",
     "CameraFrame",
+    "CameraStatus",
+    "GimbalAttitude",
     "BoundingBox",
     "Detections",
     "PersonKeypoints",
@@ -121,16 +123,53 @@ class CameraInfo(Message, tag="camera_info"):
 
 
 class CameraFrame(Message, tag="camera_frame"):
-    """One compressed camera image; ``header.t_measurement_ns`` is the capture time."""
+    """One compressed camera image; ``header.t_measurement_ns`` is the capture time (the middle of the exposure
+    where the source says when it was, in the system realtime clock; see ``onboard.camera`` for each source's
+    latency model).
 
-    SCHEMA_VERSION: ClassVar[int] = 1
+    Version 2 added ``exposure_s`` and ``source`` (version 1 decodes with them None / "")."""
+
+    SCHEMA_VERSION: ClassVar[int] = 2
+    READABLE_VERSIONS: ClassVar[tuple[int, ...]] = (1,)
     camera_id: str
-    frame_index: int
+    frame_index: int  #: the source's own frame counter (a gap = frames the source dropped)
     encoding: Literal["jpeg", "png"]
     width_px: int
     height_px: int
     data: bytes
     T_world_cam: tuple[float, ...] = ()  #: 16 floats: camera pose at capture from the vehicle's estimate
+    exposure_s: float | None = None  #: exposure time when the source reports it, else None
+    source: str = ""  #: the capture source, e.g. "sim", "v4l2:/dev/video0", "gstreamer", "rtsp", "file"
+
+
+class CameraStatus(Message, tag="camera_status"):
+    """Health of one camera capture (published by the camera service at ~1 Hz)."""
+
+    SCHEMA_VERSION: ClassVar[int] = 1
+    camera_id: str
+    source: str  #: e.g. "v4l2:/dev/video0", "rtsp://...", "gstreamer", "file:flight.mp4"
+    connected: bool
+    frames: int  #: frames delivered since the service started
+    dropped: int  #: frames lost (source counter gaps + frames the service could not keep up with)
+    reconnects: int = 0
+    rate_hz: float = 0.0  #: measured delivery rate over the last period
+    latency_s: float = 0.0  #: the latency model subtracted from arrival times (0 when the source timestamps)
+    detail: str = ""  #: why it is disconnected / the last error, empty when fine
+
+
+class GimbalAttitude(Message, tag="gimbal_attitude"):
+    """The gimbal's reported attitude (MAVLink GIMBAL_DEVICE_ATTITUDE_STATUS via MAVSDK's gimbal plugin);
+    ``header.t_measurement_ns`` = the time of the gimbal's report. Angles of the camera's forward axis:
+    roll and pitch relative to the horizon (negative pitch = down), ``yaw_rad`` relative to the vehicle's heading
+    (MAVSDK "forward" frame), ``yaw_north_rad`` relative to north (NED)."""
+
+    SCHEMA_VERSION: ClassVar[int] = 1
+    gimbal_id: int
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    yaw_north_rad: float
+    angular_velocity_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)  #: roll, pitch, yaw rates
 
 
 class BoundingBox(msgspec.Struct, kw_only=True):
@@ -296,6 +335,8 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     VehicleState,
     CameraInfo,
     CameraFrame,
+    CameraStatus,
+    GimbalAttitude,
     Detections,
     Keypoints2D,
     TargetEstimate,

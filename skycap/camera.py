@@ -97,6 +97,33 @@ class PinholeCamera:
                    fy_px=float(info.fy_px), cx_px=float(info.cx_px), cy_px=float(info.cy_px),
                    distortion_model=info.distortion_model, distortion=tuple(map(float, info.distortion)))
 
+    @classmethod
+    def from_toml(cls, path) -> PinholeCamera:
+        """From a calibration file (``skycap camera calibrate --out camera.toml``): its ``[camera]`` table holds
+        ``width_px``, ``height_px``, ``fx_px``, ``fy_px``, ``cx_px``, ``cy_px``, ``distortion_model`` ("none" or
+        "plumb_bob") and ``distortion`` (k1, k2, p1, p2, k3); other tables (``[calibration]``: how it was made)
+        are ignored here. A missing file or field is a :class:`CameraError` naming it."""
+        import tomllib
+        from pathlib import Path
+
+        p = Path(path)
+        if not p.is_file():
+            raise CameraError(f"camera calibration file {p} not found; make one with 'skycap camera calibrate "
+                              f"SOURCE --board charuco ... --out {p.name}' or fix camera.calibration_file")
+        try:
+            with p.open("rb") as f:
+                t = tomllib.load(f).get("camera")
+        except tomllib.TOMLDecodeError as e:
+            raise CameraError(f"camera calibration file {p} is not valid TOML: {e}") from None
+        need = ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px")
+        if not isinstance(t, dict) or any(k not in t for k in need):
+            missing = [k for k in need if not isinstance(t, dict) or k not in t]
+            raise CameraError(f"camera calibration file {p}: the [camera] table lacks {', '.join(missing)}")
+        return cls(width_px=int(t["width_px"]), height_px=int(t["height_px"]), fx_px=float(t["fx_px"]),
+                   fy_px=float(t["fy_px"]), cx_px=float(t["cx_px"]), cy_px=float(t["cy_px"]),
+                   distortion_model=str(t.get("distortion_model", "none")),
+                   distortion=tuple(float(x) for x in t.get("distortion", ())))
+
     # ------------------------------------------------------------------------------------- properties
     @property
     def K(self) -> np.ndarray:

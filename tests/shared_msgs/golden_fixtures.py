@@ -20,6 +20,8 @@ from shared_msgs.messages import (
     BoundingBox,
     CameraFrame,
     CameraInfo,
+    CameraStatus,
+    GimbalAttitude,
     Command,
     CommandAck,
     Detections,
@@ -77,6 +79,16 @@ def examples() -> dict[str, Message]:
         CameraFrame(
             header=hdr(CameraFrame, "drone_1", 120), camera_id="cam0", frame_index=119, encoding="jpeg",
             width_px=1280, height_px=720, data=bytes(range(256)) + b"\xff\xd9", T_world_cam=T_WORLD_CAM,
+            exposure_s=0.004, source="v4l2:/dev/video0",
+        ),
+        CameraStatus(
+            header=hdr(CameraStatus, "drone_1", 7), camera_id="cam0", source="rtsp://127.0.0.1:8554/cam",
+            connected=False, frames=1200, dropped=3, reconnects=1, rate_hz=29.75, latency_s=0.0625,
+            detail="no frame for 2.0 s; reconnecting",
+        ),
+        GimbalAttitude(
+            header=hdr(GimbalAttitude, "drone_1", 250), gimbal_id=1, roll_rad=0.0, pitch_rad=-0.5, yaw_rad=0.125,
+            yaw_north_rad=1.5, angular_velocity_rad_s=(0.0, 0.25, -0.125),
         ),
         Detections(
             header=hdr(Detections, "drone_1", 120), camera_id="cam0", frame_index=119, detector="yolo-person-s",

@@ -65,3 +65,13 @@ def test_older_readable_versions_decode_as_the_current_version() -> None:
     raw["header"]["schema_version"] = 0
     with pytest.raises(MessageError, match="schema version 0"):
         decode(msgspec.msgpack.encode(raw), Detections)
+
+
+def test_camera_frame_version_1_decodes_as_version_2() -> None:
+    """CameraFrame version 1 (before ``exposure_s`` and ``source``) decodes with them at their defaults."""
+    from shared_msgs import CameraFrame
+
+    msg = decode((GOLDEN_DIR / "older" / "camera_frame.v1.msgpack").read_bytes(), CameraFrame)
+    assert msg.header.schema_version == CameraFrame.SCHEMA_VERSION == 2
+    assert msg.exposure_s is None and msg.source == ""
+    assert msg.data == EXAMPLES["camera_frame"].data and msg.T_world_cam == EXAMPLES["camera_frame"].T_world_cam
