@@ -127,8 +127,9 @@ class TrackConfig:
     #: where this drone's own detections come from: "sim" = the simulator's box detector
     #: (``<drone>/sim/detections``, labelled ``detector="simulated"``); "onnx" = the ONNX person detector
     #: (``onboard/detector``, model ``detector_model``) on this drone's camera frames (``<drone>/camera/image``),
-    #: in the region of interest the filter predicts (a worker thread, newest frame wins)
-    detections: str = "sim"
+    #: in the region of interest the filter predicts (a worker thread, newest frame wins); "auto" (default) =
+    #: "onnx" whenever a real camera is configured (``camera.source`` not "sim"), else "sim"
+    detections: str = "auto"
     detector_model: str = "nanodet"
     detector_threads: int = 1  #: onnxruntime intra-op threads of the detector
     mpc_horizon_steps: int = 15
@@ -191,9 +192,14 @@ class AgentConfig:
         self.camera.validate()
         if self.mode not in ("orbit", "track"):
             raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
-        if self.track.detections not in ("sim", "onnx"):
-            raise ConfigError(f"track.detections={self.track.detections!r}: use 'sim' (the simulator's detector on "
-                              "sim/detections) or 'onnx' (the ONNX person detector on the camera frames)")
+        if self.track.detections not in ("auto", "sim", "onnx"):
+            raise ConfigError(f"track.detections={self.track.detections!r}: use 'auto', 'sim' (the simulator's detector "
+                              "on sim/detections) or 'onnx' (the ONNX person detector on the camera frames)")
+        if self.track.detections == "auto":
+            self.track.detections = "sim" if self.camera.source == "sim" else "onnx"
+        if self.track.detections == "sim" and self.camera.source != "sim":
+            raise ConfigError(f"track.detections='sim' with camera.source={self.camera.source!r}: the simulator's box "
+                              "detector exists only in simulation; use 'onnx' (or 'auto') with a real camera")
         if self.track.detector_threads < 1:
             raise ConfigError(f"track.detector_threads={self.track.detector_threads}: must be >= 1")
         for name in ("gcs_loss_action", "low_battery_action"):

@@ -62,6 +62,7 @@ from onboard.setpoint import HoldSource, Setpoint, SetpointSource
 from shared_msgs import (
     CameraFrame,
     CameraInfo,
+    CameraStatus,
     Command,
     CommandAck,
     Detections,
@@ -105,6 +106,7 @@ class Agent:
         self.camera_info: CameraInfo | None = None
         self.rates = {k: RateMeter() for k in ("setpoint", "state", "frame", "keypoints")}
         self.warnings: list[str] = []
+        self._camera_connected = True  #: the camera service's last CameraStatus said so (a loss warns once)
         self.acks: list[CommandAck] = []  # for tests and the health report
         self._act_lock = asyncio.Lock()
         self._tasks: list[asyncio.Task] = []
@@ -235,6 +237,14 @@ class Agent:
                     log.exception("%s: perception stage %s failed", self.id, stage.name)
         elif isinstance(msg, Keypoints2D):
             self.rates["keypoints"].tick()
+        elif isinstance(msg, CameraStatus):
+            if not msg.connected and self._camera_connected:
+                reason = f"camera {msg.camera_id} ({msg.source}) lost: {msg.detail or 'no frames'}"
+                log.warning("%s: %s", self.id, reason)
+                self.warnings.append(reason)
+            elif msg.connected and not self._camera_connected:
+                log.info("%s: camera %s (%s) delivering frames", self.id, msg.camera_id, msg.source)
+            self._camera_connected = msg.connected
 
     # --- actions ------------------------------------------------------------------------------------
     def _spawn(self, coro, name: str) -> None:
@@ -420,8 +430,8 @@ class Agent:
                     sub(self.outbox.key(topic), self.on_camera, None)
         if cfg.record_camera:
             # the simulator camera also sends exact keypoints and simulated detections: kept for evaluation
-            for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.SIM_KEYPOINTS2D, keys.SIM_KEYPOINTS2D_GT,
-                          keys.SIM_DETECTIONS):
+            for topic in (keys.CAMERA_INFO, keys.CAMERA_IMAGE, keys.CAMERA_STATUS, keys.SIM_KEYPOINTS2D,
+                          keys.SIM_KEYPOINTS2D_GT, keys.SIM_DETECTIONS):
                 sub(self.outbox.key(topic), self.on_camera, None)
         try:
             self.bus.declare_alive(keys.alive_key(cfg.fleet, self.id))

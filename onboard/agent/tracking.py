@@ -179,7 +179,7 @@ class TrackingCapture:
         """The capture's part of the flight statistics (``<drone>.track.json``)."""
         tr, w = self.stage, self.detector_worker
         return {
-            "detections_source": ("onnx:" + self.cfg.detector_model) if w is not None else self.cfg.detections,
+            "detections_source": ("onnx:" + self.cfg.detector_model) if w is not None else "sim",
             "detector": None if w is None else w.stats(),
             "offset_log": [list(r) for r in tr.offset_log],
             "counts": dict(tr.counts),
