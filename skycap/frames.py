@@ -90,6 +90,34 @@ def T_world_cam_from_pose(
     return make_T(R_wc, t)
 
 
+def T_world_cam_mount(
+    position_ned_m,
+    q_world_body_wxyz,
+    mount: str,
+    pitch_rad: float,
+    yaw_rad: float = 0.0,
+    lever_arm_body_m=None,
+) -> np.ndarray:
+    """T_world_cam (4, 4) of a camera on a vehicle at ``position_ned_m`` (NED) with attitude ``q_world_body``.
+
+    ``mount="gimbal"``: roll and pitch stabilised; the camera's yaw = the vehicle's heading + ``yaw_rad`` and its
+    pitch relative to the horizon = ``pitch_rad`` (negative = down; the gimbal's reported or commanded angles).
+    ``mount="fixed"``: the camera turns with the body, pitched by ``pitch_rad`` and yawed by ``yaw_rad`` relative
+    to it. The lever arm (camera centre in body FRD, m) turns with the body in both cases.
+    """
+    R_wb = R_from_quat_wxyz(q_world_body_wxyz)
+    lever = np.zeros(3) if lever_arm_body_m is None else np.asarray(lever_arm_body_m, dtype=float)
+    position = np.asarray(position_ned_m, dtype=float) + R_wb @ lever
+    if mount == "gimbal":
+        yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])
+        c, s = math.cos(yaw), math.sin(yaw)
+        R_yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return T_world_cam_from_pose(position, R_yaw, gimbal_pitch_rad=pitch_rad, gimbal_yaw_rad=yaw_rad)
+    if mount == "fixed":
+        return T_world_cam_from_pose(position, R_wb, gimbal_pitch_rad=pitch_rad, gimbal_yaw_rad=yaw_rad)
+    raise ValueError(f"camera mount {mount!r}: use 'gimbal' or 'fixed'")
+
+
 def project_points(K: np.ndarray, T_world_cam: np.ndarray, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pinhole projection (no distortion) of world points (...,3) -> (pixels (...,2), depth_m (...)).
 

@@ -59,6 +59,7 @@ from onboard.config import AgentConfig
 from onboard.mission import Action, Mission, State, validate_command, validate_plan
 from onboard.orbit import OrbitController
 from onboard.setpoint import HoldSource, Setpoint, SetpointSource
+from onboard.camera.pose import CameraPoser
 from shared_msgs import (
     CameraFrame,
     CameraInfo,
@@ -107,6 +108,11 @@ class Agent:
         self.rates = {k: RateMeter() for k in ("setpoint", "state", "frame", "keypoints")}
         self.warnings: list[str] = []
         self._camera_connected = True  #: the camera service's last CameraStatus said so (a loss warns once)
+        #: a real camera's frames come without a pose: stamped from the reported states and gimbal attitude
+        self.camera_poser: CameraPoser | None = None
+        if cfg.camera.source != "sim":
+            self.camera_poser = CameraPoser(cfg.camera.mount, math.radians(cfg.camera.pitch_deg),
+                                            cfg.camera.lever_arm_body_m)
         self.acks: list[CommandAck] = []  # for tests and the health report
         self._act_lock = asyncio.Lock()
         self._tasks: list[asyncio.Task] = []
@@ -147,6 +153,8 @@ class Agent:
     # --- inputs (run on the loop) -------------------------------------------------------------------
     def _on_state(self, st: VehicleState) -> None:
         self.state = st
+        if self.camera_poser is not None:
+            self.camera_poser.add_state(st)
         self.rates["state"].tick()
         if self.tracking is not None:
             self.tracking.on_state(st)
@@ -227,6 +235,10 @@ class Agent:
                 self.tracking.on_sim_detections(msg)
         elif isinstance(msg, CameraFrame):
             self.rates["frame"].tick()
+            if len(msg.T_world_cam) != 16 and self.camera_poser is not None:
+                T = self.camera_poser.T_world_cam(msg.header.t_measurement_ns)
+                if T is not None:  # None: no state near the capture time; the tracking skips such a frame
+                    msg = msgspec.structs.replace(msg, T_world_cam=tuple(float(v) for v in T.ravel()))
             if self.tracking is not None:
                 self.tracking.on_frame(msg)
             for stage in self.perception:

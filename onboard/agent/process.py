@@ -35,6 +35,14 @@ async def run_agent(cfg: AgentConfig) -> int:
                                        metadata={"fleet": cfg.fleet, "connection": cfg.connection})
         save_config(cfg, Sortie.of(recorder.path).config_path)
     bus = Transport.open(cfg.transport, node_id=cfg.drone_id)
+    camera = None
+    if cfg.camera.source != "sim" and cfg.camera.in_agent:
+        # the capture runs in this process (a thread) and publishes like a separate camera service would: the
+        # agent's recorder and detector and the ground station all take the frames from the one capture
+        from onboard.camera.service import CameraService
+
+        camera = CameraService(cfg.camera, bus, cfg.fleet, cfg.drone_id)
+        camera.start()
     origin = (cfg.origin.lat_deg, cfg.origin.lon_deg, cfg.origin.alt_m)
     agent = Agent(cfg, bus, MavsdkAutopilot(cfg.drone_id, origin=origin), recorder)
     try:
@@ -46,6 +54,8 @@ async def run_agent(cfg: AgentConfig) -> int:
                 p.write_text(json.dumps(agent.tracking_stats()))
             except Exception as e:
                 log.error("%s: writing the tracking statistics failed: %s", cfg.drone_id, e)
+        if camera is not None:
+            camera.stop()
         if recorder is not None:
             recorder.close()
         bus.close()

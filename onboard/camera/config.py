@@ -29,6 +29,13 @@ class CameraConfig:
     width_px: int = 0
     height_px: int = 0
     rate_hz: float = 0.0
+    #: how the camera sits on the drone: "gimbal" (roll and pitch stabilised, pitch and yaw from the gimbal's
+    #: reported attitude) or "fixed" (turns with the body)
+    mount: str = "gimbal"
+    #: fixed mount: pitch relative to the body; gimbal: the pitch assumed until the gimbal reports (deg, < 0 down)
+    pitch_deg: float = -30.0
+    #: the camera's optical centre in the body FRD frame (m)
+    lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     #: intrinsic calibration written by ``skycap camera calibrate`` (TOML); published as CameraInfo.
     #: Empty: only allowed with source="sim" (the simulator publishes its own CameraInfo)
     calibration_file: str = ""
@@ -54,6 +61,12 @@ class CameraConfig:
         if self.source != "sim" and not self.calibration_file:
             raise ConfigError(f"camera.source={self.source!r} needs camera.calibration_file (make one with "
                               "'skycap camera calibrate ... --out camera.toml')")
+        if self.mount not in ("gimbal", "fixed"):
+            raise ConfigError(f"camera.mount={self.mount!r}: use 'gimbal' or 'fixed'")
+        if not -90.0 <= self.pitch_deg <= 30.0:
+            raise ConfigError(f"camera.pitch_deg={self.pitch_deg}: use -90 (straight down) .. 30")
+        if len(self.lever_arm_body_m) != 3:
+            raise ConfigError(f"camera.lever_arm_body_m={self.lever_arm_body_m}: three numbers (forward, right, down m)")
         if not 1 <= self.jpeg_quality <= 100:
             raise ConfigError(f"camera.jpeg_quality={self.jpeg_quality}: use 1..100")
         if self.rate_hz < 0 or self.thumbnail_hz < 0 or self.reconnect_after_s <= 0 or self.latency_s < 0:
