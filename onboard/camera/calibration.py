@@ -400,12 +400,16 @@ def synthetic_views(camera: PinholeCamera, spec: CharucoBoardSpec, n: int, seed:
                           [w_m / 2, sq, 0], [w_m - sq, h_m / 2, 0], [w_m / 2, h_m - sq, 0], [sq, h_m / 2, 0]])
     spots = [(a, b) for b in (0.0, 1.0, 0.5) for a in (0.0, 1.0, 0.5)]  # corners first, then edges, centre last
     views = []
+    m = 6.0  # pixels between the outermost inner corners and the image's edge
+    lo, hi = np.array([m, m]), np.array([camera.width_px - 1 - m, camera.height_px - 1 - m])
     for i in range(n):
         a, b = spots[i % len(spots)]
+        corner = a != 0.5 and b != 0.5
         for _ in range(200):
             phi = rng.uniform(0, 2 * np.pi)
+            roll = 10.0 if corner else 30.0  # a rolled board cannot reach into the image's corner
             R = _rot([math.cos(phi), math.sin(phi), 0.0], math.radians(rng.uniform(*tilt_deg))) @ \
-                _rot([0, 0, 1.0], math.radians(rng.uniform(-30, 30)))
+                _rot([0, 0, 1.0], math.radians(rng.uniform(-roll, roll)))
             f = rng.uniform(*fill)
             z = camera.fx_px * w_m / (f * camera.width_px)
             inner = (1 - 2 * sq / w_m)  # the inner corners' share of the board's width
@@ -415,9 +419,19 @@ def synthetic_views(camera: PinholeCamera, spec: CharucoBoardSpec, n: int, seed:
             v = half_v + (camera.height_px - 2 * half_v) * np.clip(b + jit[1], 0, 1)
             ray = np.append(camera.undistort_normalized(np.array([u, v])), 1.0)
             t = z * ray - R @ centre_b
+            for _ in range(5):  # slide the board until its inner corners touch the edges it is placed at
+                uv, depth = camera.project_cam(outline_b @ R.T + t)
+                if not np.all(depth > 0):
+                    break
+                shift = np.zeros(2)
+                for k, pos in enumerate((a, b)):
+                    if pos == 0.0:
+                        shift[k] = lo[k] - uv[:, k].min()
+                    elif pos == 1.0:
+                        shift[k] = hi[k] - uv[:, k].max()
+                t = t + np.array([shift[0] / camera.fx_px, shift[1] / camera.fy_px, 0.0]) * (t + R @ centre_b)[2]
             uv, depth = camera.project_cam(outline_b @ R.T + t)
-            m = 6.0
-            if np.all(depth > 0) and np.all((uv >= m) & (uv <= [camera.width_px - 1 - m, camera.height_px - 1 - m])):
+            if np.all(depth > 0) and np.all((uv >= lo - 0.5) & (uv <= hi + 0.5)):
                 break
         else:
             raise CalibrationError(f"no pose for synthetic view {i} keeps the board in view; widen fill/tilt ranges")
