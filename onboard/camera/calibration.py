@@ -157,7 +157,8 @@ class CalibrationResult:
     rms_px: float
     views_used: tuple[ViewReport, ...]
     views_rejected: tuple[ViewReport, ...]
-    #: fraction of the image's 4x4 cells (8x6 would be finer; 4x4 matches "fill the corners") holding a corner
+    #: fraction of the image's 4x4 cells holding a detected corner of a used view (1.0: the board reached every
+    #: part of the image, the corners included)
     coverage: float
 
     def calibration_table(self, spec: CharucoBoardSpec, *, source: str = "", created_utc: str | None = None) -> dict:
@@ -234,7 +235,8 @@ def calibrate_charuco(images: Iterable[np.ndarray | tuple[str, np.ndarray]], spe
         if size is None:
             size = hw
         elif hw != size:
-            rejected.append(ViewReport(label, 0, reason=f"image {hw[0]}x{hw[1]} differs from the first, {size[0]}x{size[1]}"))
+            why = f"image {hw[0]}x{hw[1]} differs from the first, {size[0]}x{size[1]}"
+            rejected.append(ViewReport(label, 0, reason=why))
             continue
         det = detect_charuco(gray, spec)
         if det is None:
