@@ -13,7 +13,9 @@ drone:
 * ``camera_info`` (:class:`CameraInfo`): intrinsics (timestamped) and the gimbal angles;
 * ``keypoints2d`` (:class:`Keypoints2D`, a real detector) -- or, when a drone has none,
   ``sim/keypoints2d`` (the simulator's noisy projections). One detector per ``detector`` name; the
-  person with the highest mean confidence in each message.
+  person with the highest mean confidence in each message. With a ``plumb_bob`` lens in the
+  ``camera_info`` in force at a frame, its keypoints are undistorted to the ideal pinhole pixels of the
+  same K (:func:`undistort_keypoints`): the fit's camera model is the pinhole ``K``.
 
 Camera pose: ``T_world_cam = T_world_cam_from_pose(position, R_yaw, gimbal_pitch, gimbal_yaw)`` with
 the gimbal angles and the mount's lever arm (translation of ``T_body_cam``) of the latest ``camera_info``;
@@ -43,6 +45,24 @@ def _yaw_only(R: np.ndarray) -> np.ndarray:
     yaw = np.arctan2(R[1, 0], R[0, 0])
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def undistort_keypoints(uv_px: np.ndarray, confidence: np.ndarray, t_frame_ns: np.ndarray, infos: Sequence,
+                        t_info_ns: np.ndarray) -> np.ndarray:
+    """Keypoints (F, ..., 2) of frames at ``t_frame_ns`` (F,) -> the ideal pinhole pixels of the same K: each frame
+    through the lens distortion of the ``CameraInfo`` in force then (the latest at or before it, else the first;
+    ``infos`` sorted by time ``t_info_ns``). Keypoints with confidence 0 (none detected) are left as they are."""
+    from skycap.camera import PinholeCamera
+
+    uv_px = np.array(uv_px, dtype=float)
+    which = np.clip(np.searchsorted(t_info_ns, t_frame_ns, side="right") - 1, 0, len(infos) - 1)
+    for j in np.unique(which):
+        if infos[j].distortion_model == "none":
+            continue
+        sel = which == j
+        ideal = PinholeCamera.from_camera_info(infos[j]).undistort_points(uv_px[sel])
+        uv_px[sel] = np.where((np.asarray(confidence)[sel] > 0)[..., None], ideal, uv_px[sel])
+    return uv_px
 
 
 def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: bool = True,
@@ -109,6 +129,7 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
         f, d = fidx[m.header.t_measurement_ns], detectors.index(m.detector)
         uv[f, d] = np.asarray(best.keypoints_px, dtype=float).reshape(17, 2)
         conf[f, d] = np.asarray(best.confidence, dtype=float)
+    uv = undistort_keypoints(uv, conf, np.array(frames, dtype=np.int64), infos, t_info)  # the fit is pinhole
     vel_a, vs_a = np.asarray(vel, dtype=float), np.asarray(vs, dtype=float)
     if not (np.all(np.isfinite(vel_a)) and np.all(np.isfinite(vs_a)) and np.all(vs_a > 0)):
         log.warning("%s: some 'state' velocities are NaN or have no variance; fitting without this drone's velocities", path)

@@ -4,6 +4,8 @@
 
     cam = PinholeCamera.from_fov(width_px=960, height_px=540, hfov_deg=70.0)
     cam = PinholeCamera.from_camera_info(info)          # the CameraInfo message a drone publishes
+    cam = PinholeCamera.from_toml("camera.toml")        # a calibration file (``skycap camera calibrate``)
+    cam.to_toml("camera.toml", calibration={...})       # ... and writing one
     uv, depth_m = cam.project(T_world_cam, points_world_ned_m)   # (..., 2) pixels, (...,) depth along +z
 
 Frames (:mod:`skycap.frames`): camera = OpenCV optical (x right, y down, z forward); ``T_world_cam`` maps
@@ -11,7 +13,9 @@ camera coordinates to world NED. Used by the simulator's renderer and camera nod
 measurement model and the offline track refinement; the ``CameraInfo`` message is its wire form.
 
 Distortion: ``"none"`` or ``"plumb_bob"`` (OpenCV's radial-tangential ``(k1, k2, p1, p2, k3)``), applied by
-:meth:`PinholeCamera.project_cam` to normalised coordinates as ``cv2.projectPoints`` does.
+:meth:`PinholeCamera.project_cam` to normalised coordinates as ``cv2.projectPoints`` does, and inverted (numpy
+Newton iterations, no OpenCV in the core) by :meth:`PinholeCamera.undistort_points` /
+:meth:`PinholeCamera.undistort_normalized`.
 """
 
 from __future__ import annotations
@@ -124,6 +128,28 @@ class PinholeCamera:
                    distortion_model=str(t.get("distortion_model", "none")),
                    distortion=tuple(float(x) for x in t.get("distortion", ())))
 
+    def to_toml(self, path, *, calibration: dict | None = None, overwrite: bool = False) -> None:
+        """Write the calibration file :meth:`from_toml` reads: the ``[camera]`` table and, when given, a
+        ``[calibration]`` table saying how it was made (``rms_reprojection_px``, ``views_used``, ``views_rejected``,
+        board, image size, ``created_utc``, ``source``...; ``None`` values are left out). An existing file is a
+        :class:`CameraError` unless ``overwrite`` (the CLI's ``--force``)."""
+        from pathlib import Path
+
+        import tomli_w
+
+        p = Path(path)
+        if p.exists() and not overwrite:
+            raise CameraError(f"{p} exists; pass --force (overwrite=True) to replace it, or choose another --out")
+        doc: dict = {"camera": {
+            "width_px": int(self.width_px), "height_px": int(self.height_px), "fx_px": float(self.fx_px),
+            "fy_px": float(self.fy_px), "cx_px": float(self.cx_px), "cy_px": float(self.cy_px),
+            "distortion_model": self.distortion_model, "distortion": [float(x) for x in self.distortion],
+        }}  # fmt: skip
+        if calibration:
+            doc["calibration"] = _toml_clean(calibration)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(tomli_w.dumps(doc))
+
     # ------------------------------------------------------------------------------------- properties
     @property
     def K(self) -> np.ndarray:
@@ -146,12 +172,35 @@ class PinholeCamera:
             return np.stack([u, v], axis=-1), z
         x, y = p_cam[..., 0] / zs, p_cam[..., 1] / zs
         if self.distortion_model == "plumb_bob":
-            k1, k2, p1, p2, k3 = self.distortion
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+            x, y = _plumb_bob(x, y, self.distortion)
         return np.stack([self.fx_px * x + self.cx_px, self.fy_px * y + self.cy_px], axis=-1), z
+
+    def undistort_normalized(self, uv_px: np.ndarray, iterations: int = 20) -> np.ndarray:
+        """Distorted pixels (..., 2) -> undistorted normalised coordinates (x/z, y/z) (..., 2): the rays
+        :meth:`project_cam` maps onto those pixels (Newton iterations on the plumb_bob model; exact for "none").
+        Points where the lens model folds back (far outside the calibrated field) may not converge."""
+        uv = np.asarray(uv_px, dtype=float)
+        xd = (uv[..., 0] - self.cx_px) / self.fx_px
+        yd = (uv[..., 1] - self.cy_px) / self.fy_px
+        if self.distortion_model == "none":
+            return np.stack([xd, yd], axis=-1)
+        x, y = xd.copy(), yd.copy()
+        for _ in range(iterations):
+            (fx, fy), (a, b, c, d) = _plumb_bob(x, y, self.distortion, jacobian=True)
+            ex, ey = xd - fx, yd - fy
+            det = a * d - b * c
+            det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+            dx, dy = (d * ex - b * ey) / det, (a * ey - c * ex) / det
+            x, y = x + dx, y + dy
+            if np.all(np.abs(dx) + np.abs(dy) < 1e-12):
+                break
+        return np.stack([x, y], axis=-1)
+
+    def undistort_points(self, uv_px: np.ndarray) -> np.ndarray:
+        """Distorted pixels (..., 2) -> the ideal pinhole pixels of the same ``K`` (what ``cv2.undistortPoints``
+        with ``P=K`` gives): where the same rays land without the lens distortion."""
+        xy = self.undistort_normalized(uv_px)
+        return np.stack([self.fx_px * xy[..., 0] + self.cx_px, self.fy_px * xy[..., 1] + self.cy_px], axis=-1)
 
     def project(self, T_world_cam: np.ndarray, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points (..., 3) -> (pixels (..., 2), depth (...))."""
@@ -162,3 +211,32 @@ class PinholeCamera:
     def in_image(self, uv: np.ndarray) -> np.ndarray:
         """Whether pixels (..., 2) fall inside the image."""
         return (uv[..., 0] >= 0) & (uv[..., 0] < self.width_px) & (uv[..., 1] >= 0) & (uv[..., 1] < self.height_px)
+
+
+def _plumb_bob(x: np.ndarray, y: np.ndarray, dist: tuple[float, ...], jacobian: bool = False):
+    """OpenCV's radial-tangential distortion of normalised coordinates; with ``jacobian`` also
+    (dxd/dx, dxd/dy, dyd/dx, dyd/dy)."""
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    if not jacobian:
+        return xd, yd
+    dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    cross = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
+    return (xd, yd), (radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x, cross,
+                      cross, radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x)
+
+
+def _toml_clean(v):
+    """A value TOML can hold: None dropped from tables, tuples as lists, numpy scalars as Python numbers."""
+    if isinstance(v, dict):
+        return {str(k): _toml_clean(x) for k, x in v.items() if x is not None}
+    if isinstance(v, (list, tuple)):
+        return [_toml_clean(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return _toml_clean(v.tolist())
+    return v

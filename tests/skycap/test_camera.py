@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -50,3 +52,40 @@ def test_parameters_that_describe_no_camera_are_refused():
                       distortion_model="plumb_bob", distortion=(0.1,))
     with pytest.raises(TypeError):  # keyword-only: no silent mix-up of (fx, fy, cx, cy, w, h) orders
         PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+
+
+def _distorted_cam() -> PinholeCamera:
+    return PinholeCamera(width_px=640, height_px=480, fx_px=520.0, fy_px=515.0, cx_px=322.0, cy_px=236.0,
+                         distortion_model="plumb_bob", distortion=(-0.25, 0.08, 0.001, -0.0005, 0.0))
+
+
+def test_undistort_points_inverts_project_cam_and_matches_opencv():
+    cam = _distorted_cam()
+    u, v = np.meshgrid(np.linspace(0, 639, 17), np.linspace(0, 479, 13))
+    uv = np.stack([u, v], axis=-1)  # (13, 17, 2): any leading shape
+    xy = cam.undistort_normalized(uv)
+    back, _ = cam.project_cam(np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1))
+    np.testing.assert_allclose(back, uv, atol=1e-6)
+    ideal = cam.undistort_points(uv)
+    ref = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, np.array(cam.distortion), P=cam.K,
+                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+    np.testing.assert_allclose(ideal.reshape(-1, 2), ref[:, 0], atol=1e-3)
+    # no distortion: the ideal pixels are the pixels
+    plain = dataclasses.replace(cam, distortion_model="none", distortion=())
+    np.testing.assert_allclose(plain.undistort_points(uv), uv)
+
+
+def test_to_toml_round_trips_and_refuses_to_overwrite(tmp_path):
+    import tomllib
+
+    cam = _distorted_cam()
+    out = tmp_path / "camera.toml"
+    cam.to_toml(out, calibration={"rms_reprojection_px": np.float64(0.21), "views_used": 14, "source": "x.mp4",
+                                  "image_size_px": (640, 480), "note": None})
+    assert PinholeCamera.from_toml(out) == cam
+    cal = tomllib.loads(out.read_text())["calibration"]
+    assert cal["rms_reprojection_px"] == 0.21 and cal["image_size_px"] == [640, 480] and "note" not in cal
+    with pytest.raises(CameraError, match="--force"):
+        cam.to_toml(out)
+    cam.to_toml(out, overwrite=True)
+    assert "calibration" not in tomllib.loads(out.read_text())
