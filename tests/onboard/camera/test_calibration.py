@@ -17,15 +17,16 @@ from skycap.camera import PinholeCamera
 TRUE = PinholeCamera(width_px=640, height_px=480, fx_px=520.0, fy_px=515.0, cx_px=322.0, cy_px=236.0,
                      distortion_model="plumb_bob", distortion=(-0.25, 0.08, 0.001, -0.0005, 0.0))
 SPEC = CharucoBoardSpec(squares_x=7, squares_y=5, square_mm=40, marker_mm=30, dictionary="DICT_5X5_100")
+N_VIEWS = 25
 BOARD_ARGS = ["--board", "charuco", "--squares", "7x5", "--square-mm", "40", "--marker-mm", "30",
               "--dict", "DICT_5X5_100"]
 
 
 @pytest.fixture(scope="module")
 def views():
-    # 15 views as a calibration video has them: tilted 10-45 deg, filling 30-80 % of the width, toward every
-    # corner and edge; a little sensor noise and blur
-    return synthetic_views(TRUE, SPEC, 15, seed=0, noise_std=2.0, blur_px=0.5)
+    # 25 views as a calibration video has them (deploy/CAMERA.md asks for 20-30): tilted 10-45 deg, filling
+    # 30-80 % of the width, toward every corner and edge; a little sensor noise and blur
+    return synthetic_views(TRUE, SPEC, N_VIEWS, seed=0, noise_std=2.0, blur_px=0.5)
 
 
 def _assert_recovered(cam: PinholeCamera) -> None:
@@ -52,13 +53,14 @@ def test_the_renderer_puts_the_corners_where_the_true_camera_projects_them(views
 def test_recovers_a_known_camera_from_renders(views):
     result = calibrate_charuco([v.image for v in views], SPEC)
     _assert_recovered(result.camera)
-    assert result.rms_px < 0.5 and len(result.views_used) >= 14 and result.coverage == 1.0
-    # where the board was seen (within 30 px of a detected corner): no ray more than 1 px off. Beyond that, in the
-    # image's very corners, the polynomial extrapolates (up to ~2-3 px at some seeds; film the corners: CAMERA.md)
+    assert result.rms_px < 0.5 and len(result.views_used) >= N_VIEWS - 1 and result.coverage == 1.0
+    # where the board was seen (within 30 px of a detected corner): no ray more than 0.5 px off (measured 0.24-0.36
+    # px for seeds 0-2; with 15 views 0.50-0.67). Beyond that, in the image's very corners, the polynomial
+    # extrapolates (0.5-0.7 px at 25 views, up to ~2-3 px at 15 views: film the corners, CAMERA.md)
     seen = np.concatenate([detect_charuco(v.image, SPEC)[0] for v in views])
     u, v = np.meshgrid(np.linspace(0.5, 639.5, 32), np.linspace(0.5, 479.5, 24))
     near = np.sqrt(((np.stack([u, v], -1)[:, :, None] - seen[None, None]) ** 2).sum(-1)).min(-1) <= 30
-    assert near.mean() > 0.7 and projection_difference_px(TRUE, result.camera)[near].max() < 1.0
+    assert near.mean() > 0.7 and projection_difference_px(TRUE, result.camera)[near].max() < 0.5
     assert all(v.rms_px is not None and v.n_corners >= 6 for v in result.views_used)
 
 
@@ -102,10 +104,10 @@ def test_cli_calibrates_an_image_folder_and_refuses_to_overwrite(views, tmp_path
     out = tmp_path / "camera.toml"
     assert main(["calibrate", str(shots), *BOARD_ARGS, "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "fx 5" in text and "RMS reprojection error" in text and "views used 15, rejected 0" in text
+    assert "fx 5" in text and "RMS reprojection error" in text and f"views used {N_VIEWS}, rejected 0" in text
     _assert_recovered(PinholeCamera.from_toml(out))
     cal = tomllib.loads(out.read_text())["calibration"]
-    assert cal["views_used"] == 15 and cal["rms_reprojection_px"] < 0.5 and cal["source"] == str(shots)
+    assert cal["views_used"] == N_VIEWS and cal["rms_reprojection_px"] < 0.5 and cal["source"] == str(shots)
     assert cal["board_spec"]["dictionary"] == "DICT_5X5_100" and cal["image_width_px"] == 640
 
     assert main(["calibrate", str(shots / "*.png"), *BOARD_ARGS, "--out", str(out)]) == 2
@@ -126,7 +128,7 @@ def test_cli_calibrates_a_video_every_nth_frame(views, tmp_path, capsys):
     out = tmp_path / "cam" / "camera.toml"
     assert main(["calibrate", str(video), *BOARD_ARGS, "--every", "3", "--out", str(out)]) == 0
     cal = tomllib.loads(out.read_text())["calibration"]
-    assert cal["views_used"] + cal["views_rejected"] == 15
+    assert cal["views_used"] + cal["views_rejected"] == N_VIEWS
     cam = PinholeCamera.from_toml(out)
     for k in ("fx_px", "fy_px", "cx_px", "cy_px"):
         assert getattr(cam, k) == pytest.approx(getattr(TRUE, k), rel=0.01), k
