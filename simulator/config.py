@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from simulator.vehicle.gimbal import GimbalConfig
 from skycap.config import ConfigError
 
 
@@ -151,6 +152,9 @@ class RatesConfig:
     gps_global_origin_hz: float = 0.0
     #: ODOMETRY (local NED pose + body-frame velocity), off unless requested (MAVSDK set_rate_odometry)
     odometry_hz: float = 0.0
+    #: gimbal protocol v2 streams (only sent by a vehicle with a gimbal; PX4's onboard rates)
+    gimbal_device_attitude_status_hz: float = 10.0
+    gimbal_manager_status_hz: float = 5.0
 
 
 @dataclass
@@ -181,6 +185,8 @@ class SimConfig:
     ports: PortsConfig = field(default_factory=PortsConfig)
     rates: RatesConfig = field(default_factory=RatesConfig)
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
+    #: one camera gimbal per vehicle (MAVLink gimbal protocol v2; ``gimbal.enabled=false``: none)
+    gimbal: GimbalConfig = field(default_factory=GimbalConfig)
     #: physics / controller step rate
     physics_hz: float = 100.0
     #: default takeoff altitude (PX4 MIS_TAKEOFF_ALT), metres above home
@@ -208,6 +214,7 @@ class SimConfig:
             raise ConfigError(
                 f"failsafe.offboard_loss_action={self.failsafe.offboard_loss_action!r}; use 'hold' or 'land'"
             )
+        self.gimbal.validate()
         if not 0 < self.limits.max_tilt_deg < 80:
             raise ConfigError(f"limits.max_tilt_deg={self.limits.max_tilt_deg} must be in (0, 80)")
         for name in ("offboard_base", "local_base", "gcs_local_base"):
