@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 from skycap.config import ConfigError
 
-__all__ = ["GimbalConfig", "SimGimbal", "GimbalState"]
+__all__ = ["GimbalConfig", "SimGimbal", "GimbalState", "quat_wxyz_from_pitch_yaw"]
 
 
 @dataclass
@@ -100,6 +100,10 @@ class SimGimbal:
         #: rate commands (rad/s) moving the target; None: angle control
         self._target_rates: tuple[float, float] | None = None
         self.commands = 0
+        #: the gimbal manager's (the autopilot's) control assignment: (sysid, compid) of the primary and the
+        #: secondary controller, (0, 0) = none (MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE)
+        self.primary_control: tuple[int, int] = (0, 0)
+        self.secondary_control: tuple[int, int] = (0, 0)
 
     def set_angles(self, pitch_rad: float, yaw_rad: float, yaw_lock: bool = False, vehicle_yaw_rad: float = 0.0) -> None:
         """Point at ``pitch_rad`` (relative to the horizon) and ``yaw_rad`` (relative to the heading, or to north
@@ -156,3 +160,10 @@ class SimGimbal:
 
     def state(self) -> GimbalState:
         return GimbalState(self.pitch_rad, self.yaw_rad, self.pitch_rate_rad_s, self.yaw_rate_rad_s, self.yaw_lock)
+
+
+def quat_wxyz_from_pitch_yaw(pitch_rad: float, yaw_rad: float) -> tuple[float, float, float, float]:
+    """The attitude quaternion (w, x, y, z) of roll 0, ``pitch_rad``, ``yaw_rad`` (ZYX Euler, as MAVLink)."""
+    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
+    return (cy * cp, -sy * sp, cy * sp, sy * cp)

@@ -114,3 +114,50 @@ def test_config_validation_and_the_vehicle_steps_its_gimbal():
     cfg.gimbal.enabled = False
     v = SimVehicle(0, cfg)
     assert v.gimbal is None and v.truth_snapshot(0).gimbal_pitch_rad is None
+
+
+# ---------------------------------------------------------------------- the protocol, without sockets
+def test_endpoint_speaks_gimbal_protocol_v2_as_the_gimbal_manager():
+    from pymavlink.dialects.v20 import common as mavlink
+    from sim_vehicle_helpers import fast_forward
+    from test_sim_endpoint_messages import Rig
+
+    M = mavlink
+    r = Rig()
+    assert r.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_GIMBAL_MANAGER_INFORMATION) == M.MAV_RESULT_ACCEPTED
+    info = [m for m in r.out.msgs if m.get_type() == "GIMBAL_MANAGER_INFORMATION"]
+    assert len(info) == 1 and info[0].gimbal_device_id == 1
+    assert info[0].pitch_min == pytest.approx(D(-90.0)) and info[0].pitch_max == pytest.approx(D(30.0))
+    assert r.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_GIMBAL_DEVICE_INFORMATION) == M.MAV_RESULT_ACCEPTED
+    # control: the client (255/190) takes primary control; another component is then refused
+    assert r.command(M.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, -2, -2, -1, -1, 0, 0, 1) == M.MAV_RESULT_ACCEPTED
+    status = [m for m in r.out.msgs if m.get_type() == "GIMBAL_MANAGER_STATUS"]
+    assert status and (status[-1].primary_control_sysid, status[-1].primary_control_compid) == (255, 190)
+    other = mavlink.MAVLink(None, 1, 191)
+    r.out.msgs.clear()
+    for m in mavlink.MAVLink(None, 1, 191).parse_buffer(
+            other.command_long_encode(1, 1, M.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, 0, -10, 0, math.nan, math.nan, 0, 0,
+                                      1).pack(other)) or []:
+        r.ep.handle(m)
+    assert [m.result for m in r.out.msgs if m.get_type() == "COMMAND_ACK"] == [M.MAV_RESULT_DENIED]
+    # wrong gimbal device id: denied; angles as COMMAND_INT (flags in x, device id in z)
+    assert r.command(M.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, -30, 0, math.nan, math.nan, 0, 0, 7) == M.MAV_RESULT_DENIED
+    assert r.command(M.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, -30, 15, math.nan, math.nan, use_int=True, frame=0, x=0,
+                     z=1.0) == M.MAV_RESULT_ACCEPTED
+    fast_forward(r.v, 2.0)
+    r.out.msgs.clear()
+    r.ep.send_stream("GIMBAL_DEVICE_ATTITUDE_STATUS")
+    (st,) = [m for m in r.out.msgs if m.get_type() == "GIMBAL_DEVICE_ATTITUDE_STATUS"]
+    from skycap.frames import R_from_quat_wxyz, euler_from_R
+
+    roll, pitch, yaw = euler_from_R(R_from_quat_wxyz(list(st.q)))
+    assert (math.degrees(roll), math.degrees(pitch), math.degrees(yaw)) == pytest.approx((0.0, -30.0, 15.0), abs=1e-3)
+    assert st.gimbal_device_id == 1 and st.flags & M.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
+    # GIMBAL_MANAGER_SET_PITCHYAW message (stream), yaw locked to north
+    r.feed(r.client.gimbal_manager_set_pitchyaw_encode(1, 1, M.GIMBAL_MANAGER_FLAGS_YAW_LOCK, 1, D(-5.0), D(40.0),
+                                                       math.nan, math.nan))
+    assert r.v.gimbal.yaw_lock and r.v.gimbal.target_yaw_rad == pytest.approx(D(40.0))
+    # without a gimbal: nothing offered
+    r2 = Rig(gimbal__enabled=False)
+    assert r2.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_GIMBAL_MANAGER_INFORMATION) == M.MAV_RESULT_UNSUPPORTED
+    assert not r2.ep.send_stream("GIMBAL_DEVICE_ATTITUDE_STATUS")
