@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from simulator.vehicle.gimbal import GimbalConfig
 from skycap.config import ConfigError
 
 
@@ -169,6 +168,40 @@ class FailsafeConfig:
     disarm_after_land_s: float = 2.0
     #: COM_DISARM_PRFLT: disarm if armed on the ground without taking off for this long (<0 disables)
     disarm_preflight_s: float = 10.0
+
+
+@dataclass
+class GimbalConfig:
+    """One camera gimbal per simulated vehicle (dynamics: :mod:`simulator.vehicle.gimbal`)."""
+
+    #: False: the vehicles have no gimbal (no gimbal messages; MAVSDK discovers none)
+    enabled: bool = True
+    #: pitch limits (deg, relative to the horizon; negative = down)
+    pitch_min_deg: float = -90.0
+    pitch_max_deg: float = 30.0
+    #: yaw limits (deg, relative to the vehicle heading)
+    yaw_min_deg: float = -180.0
+    yaw_max_deg: float = 180.0
+    #: rate limit of each axis (deg/s)
+    max_rate_deg_s: float = 90.0
+    #: first-order lag of each axis towards its target (s)
+    time_constant_s: float = 0.1
+    #: pitch the gimbal starts at (deg; ``skycap sim --gimbal-pitch-deg``)
+    initial_pitch_deg: float = 0.0
+    vendor_name: str = "skycap"
+    model_name: str = "sim-gimbal-2axis"
+
+    def validate(self) -> "GimbalConfig":
+        if not self.pitch_min_deg < self.pitch_max_deg or not self.yaw_min_deg < self.yaw_max_deg:
+            raise ConfigError(f"gimbal limits: pitch {self.pitch_min_deg}..{self.pitch_max_deg} deg, yaw "
+                              f"{self.yaw_min_deg}..{self.yaw_max_deg} deg; each min must be below its max")
+        if self.max_rate_deg_s <= 0 or self.time_constant_s < 0:
+            raise ConfigError(f"gimbal.max_rate_deg_s={self.max_rate_deg_s} must be > 0 and "
+                              f"gimbal.time_constant_s={self.time_constant_s} >= 0")
+        if not self.pitch_min_deg <= self.initial_pitch_deg <= self.pitch_max_deg:
+            raise ConfigError(f"gimbal.initial_pitch_deg={self.initial_pitch_deg} is outside the pitch limits "
+                              f"{self.pitch_min_deg}..{self.pitch_max_deg} deg")
+        return self
 
 
 @dataclass
