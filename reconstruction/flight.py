@@ -11,6 +11,8 @@ drone:
 * ``state`` (:class:`VehicleState`): the drone's own pose estimate at ``header.t_measurement_ns``,
   with diagonal position/attitude covariances -> camera pose uncertainty;
 * ``camera_info`` (:class:`CameraInfo`): intrinsics (timestamped) and the gimbal angles;
+* ``gimbal`` (:class:`GimbalAttitude`, when recorded): the gimbal's reported pitch and yaw, interpolated at
+  each pose time (yaw unwrapped; held at the ends) -- used instead of ``camera_info``'s angles;
 * ``keypoints2d`` (:class:`Keypoints2D`, a real detector) -- or, when a drone has none,
   ``sim/keypoints2d`` (the simulator's noisy projections). One detector per ``detector`` name; the
   person with the highest mean confidence in each message. With a ``plumb_bob`` lens in the
@@ -18,7 +20,8 @@ drone:
   same K (:func:`undistort_keypoints`): the fit's camera model is the pinhole ``K``.
 
 Camera pose: ``T_world_cam = T_world_cam_from_pose(position, R_yaw, gimbal_pitch, gimbal_yaw)`` with
-the gimbal angles and the mount's lever arm (translation of ``T_body_cam``) of the latest ``camera_info``;
+the gimbal angles (the ``gimbal`` reports at the pose time, else the latest ``camera_info``'s) and the mount's
+lever arm (translation of ``T_body_cam``) of the latest ``camera_info``;
 the gimbal is taken to stabilise roll and pitch
 (``R_yaw`` = the vehicle's yaw only), as :func:`skycap.frames.T_world_cam_from_pose` documents; pass
 ``gimbal_stabilised=False`` for a camera fixed to the body.
@@ -65,6 +68,16 @@ def undistort_keypoints(uv_px: np.ndarray, confidence: np.ndarray, t_frame_ns: n
     return uv_px
 
 
+def _gimbal_track(msgs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t_ns, pitch_rad, unwrapped yaw_rad) of the finite ``gimbal`` reports in time order; None without any."""
+    rows = sorted((m.header.t_measurement_ns, m.pitch_rad, m.yaw_rad) for m in msgs
+                  if np.isfinite(m.pitch_rad) and np.isfinite(m.yaw_rad))
+    if not rows:
+        return None
+    t, p, y = (np.array(c, dtype=float) for c in zip(*rows))
+    return t, p, np.unwrap(y)
+
+
 def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: bool = True,
                    position_offset: tuple[np.ndarray, np.ndarray] | None = None, name: str | None = None) -> CameraCapture:
     """One drone's recording(s) -> its :class:`CameraCapture` (see the module docstring).
@@ -75,13 +88,14 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
     (interpolated, held at the ends): the offline smoother's estimate of the drone's GPS offset.
     """
     from flightdata.flightlog import SortieLogs
-    from shared_msgs.messages import CameraInfo, Keypoints2D, VehicleState
+    from shared_msgs.messages import CameraInfo, GimbalAttitude, Keypoints2D, VehicleState
 
     paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
     flog = SortieLogs(paths)
     path = ", ".join(str(p) for p in paths)  # for the messages
     states = flog.read_topic("state", VehicleState)
     infos = flog.read_topic("camera_info", CameraInfo)
+    gimbal = _gimbal_track(flog.read_topic("gimbal", GimbalAttitude)) if gimbal_stabilised else None
     kps = flog.read_topic("keypoints2d", Keypoints2D)
     if not kps:
         kps = flog.read_topic("sim/keypoints2d", Keypoints2D)
@@ -108,8 +122,11 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
         pos = np.array(s.position_ned_m)
         if position_offset is not None:
             pos = pos - np.array([np.interp(t, position_offset[0], position_offset[1][:, k]) for k in range(3)])
+        g_pitch, g_yaw = infos[i].gimbal_pitch_rad, infos[i].gimbal_yaw_rad
+        if gimbal is not None:  # the gimbal's own reports at this pose time
+            g_pitch, g_yaw = float(np.interp(t, gimbal[0], gimbal[1])), float(np.interp(t, gimbal[0], gimbal[2]))
         T_list.append(T_world_cam_from_pose(pos, _yaw_only(R) if gimbal_stabilised else R,
-                                            infos[i].gimbal_pitch_rad, infos[i].gimbal_yaw_rad, lever))  # fmt: skip
+                                            g_pitch, g_yaw, lever))  # fmt: skip
         t_pose.append(t)
         ps.append(float(np.sqrt(np.sum(s.position_cov_m2))))
         rs.append(float(np.degrees(np.sqrt(np.sum(s.attitude_cov_rad2)))))

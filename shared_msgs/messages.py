@@ -311,19 +311,24 @@ class Health(Message, tag="health"):
 
 
 class VehicleTruth(msgspec.Struct, kw_only=True):
-    """Simulator ground truth of one vehicle (NED)."""
+    """Simulator ground truth of one vehicle (NED) and of its camera gimbal (true angles: pitch relative to the
+    horizon, negative = down; yaw relative to the vehicle's heading, positive = right)."""
 
     drone_id: str
     position_ned_m: tuple[float, float, float]
     velocity_ned_m_s: tuple[float, float, float]
     q_world_body: tuple[float, float, float, float]
     gimbal_pitch_rad: float = 0.0
+    gimbal_yaw_rad: float = 0.0  #: SimTruth version 2
 
 
 class SimTruth(Message, tag="sim_truth"):
-    """Simulator ground truth: vehicles and the person (COCO-17 joints, NED metres)."""
+    """Simulator ground truth: vehicles and the person (COCO-17 joints, NED metres).
 
-    SCHEMA_VERSION: ClassVar[int] = 1
+    Version 2 added ``VehicleTruth.gimbal_yaw_rad`` (version 1 decodes with it 0: the gimbal looked ahead)."""
+
+    SCHEMA_VERSION: ClassVar[int] = 2
+    READABLE_VERSIONS: ClassVar[tuple[int, ...]] = (1,)
     vehicles: list[VehicleTruth]
     person_joints_ned_m: tuple[float, ...]  #: 51 floats, COCO-17 (x, y, z) each
     person_root_ned_m: tuple[float, float, float]

@@ -51,7 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     net.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447", help="Zenoh endpoint to join")
     net.add_argument("--truth-hz", type=float, default=50.0, help="ground-truth publishing rate")
     net.add_argument("--gimbal-pitch-deg", type=float, default=None,
-                     help="camera gimbal pitch reported in the truth (the simulator has no MAVLink gimbal yet)")
+                     help="the pitch each vehicle's gimbal starts at (gimbal.initial_pitch_deg; without a gimbal: the "
+                          "fixed camera pitch reported in the truth)")
     net.add_argument("--gps-jump", default=None, metavar="INDEX,AT_S,N,E,D",
                      help="fault injection: vehicle INDEX's position estimate jumps by (N, E, D) m AT_S seconds after "
                           "the start time of the first orbit plan seen on the fleet's plan key")
@@ -65,7 +66,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from simulator.config import SimConfig  # imported here: `skycap --help` imports every command module
 
-    cfg = config_from_args(SimConfig, args, extra={"vehicles.count": args.drones}).validate()
+    extra = {"vehicles.count": args.drones}
+    if args.gimbal_pitch_deg is not None:
+        extra["gimbal.initial_pitch_deg"] = args.gimbal_pitch_deg
+    cfg = config_from_args(SimConfig, args, extra=extra).validate()
     net = None
     if args.fleet:
         net = SimNetwork(fleet=args.fleet, zenoh_connect=args.zenoh_connect, truth_hz=args.truth_hz,

@@ -151,6 +151,9 @@ class RatesConfig:
     gps_global_origin_hz: float = 0.0
     #: ODOMETRY (local NED pose + body-frame velocity), off unless requested (MAVSDK set_rate_odometry)
     odometry_hz: float = 0.0
+    #: gimbal protocol v2 streams (only sent by a vehicle with a gimbal; PX4's onboard rates)
+    gimbal_device_attitude_status_hz: float = 10.0
+    gimbal_manager_status_hz: float = 5.0
 
 
 @dataclass
@@ -168,6 +171,40 @@ class FailsafeConfig:
 
 
 @dataclass
+class GimbalConfig:
+    """One camera gimbal per simulated vehicle (dynamics: :mod:`simulator.vehicle.gimbal`)."""
+
+    #: False: the vehicles have no gimbal (no gimbal messages; MAVSDK discovers none)
+    enabled: bool = True
+    #: pitch limits (deg, relative to the horizon; negative = down)
+    pitch_min_deg: float = -90.0
+    pitch_max_deg: float = 30.0
+    #: yaw limits (deg, relative to the vehicle heading)
+    yaw_min_deg: float = -180.0
+    yaw_max_deg: float = 180.0
+    #: rate limit of each axis (deg/s)
+    max_rate_deg_s: float = 90.0
+    #: first-order lag of each axis towards its target (s)
+    time_constant_s: float = 0.1
+    #: pitch the gimbal starts at (deg; ``skycap sim --gimbal-pitch-deg``)
+    initial_pitch_deg: float = 0.0
+    vendor_name: str = "skycap"
+    model_name: str = "sim-gimbal-2axis"
+
+    def validate(self) -> "GimbalConfig":
+        if not self.pitch_min_deg < self.pitch_max_deg or not self.yaw_min_deg < self.yaw_max_deg:
+            raise ConfigError(f"gimbal limits: pitch {self.pitch_min_deg}..{self.pitch_max_deg} deg, yaw "
+                              f"{self.yaw_min_deg}..{self.yaw_max_deg} deg; each min must be below its max")
+        if self.max_rate_deg_s <= 0 or self.time_constant_s < 0:
+            raise ConfigError(f"gimbal.max_rate_deg_s={self.max_rate_deg_s} must be > 0 and "
+                              f"gimbal.time_constant_s={self.time_constant_s} >= 0")
+        if not self.pitch_min_deg <= self.initial_pitch_deg <= self.pitch_max_deg:
+            raise ConfigError(f"gimbal.initial_pitch_deg={self.initial_pitch_deg} is outside the pitch limits "
+                              f"{self.pitch_min_deg}..{self.pitch_max_deg} deg")
+        return self
+
+
+@dataclass
 class SimConfig:
     """Top-level configuration of ``skycap sim``."""
 
@@ -181,6 +218,8 @@ class SimConfig:
     ports: PortsConfig = field(default_factory=PortsConfig)
     rates: RatesConfig = field(default_factory=RatesConfig)
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
+    #: one camera gimbal per vehicle (MAVLink gimbal protocol v2; ``gimbal.enabled=false``: none)
+    gimbal: GimbalConfig = field(default_factory=GimbalConfig)
     #: physics / controller step rate
     physics_hz: float = 100.0
     #: default takeoff altitude (PX4 MIS_TAKEOFF_ALT), metres above home
@@ -208,6 +247,7 @@ class SimConfig:
             raise ConfigError(
                 f"failsafe.offboard_loss_action={self.failsafe.offboard_loss_action!r}; use 'hold' or 'land'"
             )
+        self.gimbal.validate()
         if not 0 < self.limits.max_tilt_deg < 80:
             raise ConfigError(f"limits.max_tilt_deg={self.limits.max_tilt_deg} must be in (0, 80)")
         for name in ("offboard_base", "local_base", "gcs_local_base"):

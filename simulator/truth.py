@@ -25,7 +25,10 @@ __all__ = ["TruthPublisher", "SimFaults", "schedule_faults"]
 
 
 class TruthPublisher:
-    """Publishes ``SimTruth`` at ``rate_hz`` from the world's tick (vehicles, gimbal pitch, person)."""
+    """Publishes ``SimTruth`` at ``rate_hz`` from the world's tick (vehicles, their gimbals, person).
+
+    Each vehicle's gimbal angles are its simulated gimbal's true attitude; a vehicle without a gimbal
+    (``gimbal.enabled = false``) reports ``gimbal_pitch_rad`` (a fixed camera pitch) and yaw 0."""
 
     def __init__(self, world: SimWorld, bus: Transport, fleet: str, rate_hz: float = 50.0,
                  gimbal_pitch_rad: float = 0.0, with_person: bool = True) -> None:
@@ -47,7 +50,9 @@ class TruthPublisher:
         vehicles = [VehicleTruth(drone_id=f"drone_{v.index + 1}", position_ned_m=tuple(map(float, v.position_ned_m)),
                                  velocity_ned_m_s=tuple(map(float, v.velocity_ned_m_s)),
                                  q_world_body=tuple(map(float, quat_wxyz_from_R(v.R_world_body))),
-                                 gimbal_pitch_rad=self.gimbal_pitch_rad)
+                                 gimbal_pitch_rad=self.gimbal_pitch_rad if v.gimbal_pitch_rad is None else
+                                 float(v.gimbal_pitch_rad),
+                                 gimbal_yaw_rad=0.0 if v.gimbal_yaw_rad is None else float(v.gimbal_yaw_rad))
                     for v in truths]
         extra = self.person.state_at(self.world.t_s).truth_fields() if self.person is not None else \
             dict(person_joints_ned_m=self._zeros, person_root_ned_m=(0.0, 0.0, 0.0))

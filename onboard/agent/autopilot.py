@@ -4,7 +4,13 @@ It connects as a MAVLink companion computer, asks for telemetry at the recording
 telemetry of every stream as one typed record (``telemetry``: :class:`onboard.agent.telemetry.Telemetry`) and
 calls ``on_state(VehicleState)`` for each position/velocity sample (the autopilot's own estimate, what the
 recorder keeps), and turns the agent's intents into MAVSDK calls
-(arm, takeoff, offboard setpoints, land, return, hold). No flight logic lives here.
+(arm, takeoff, offboard setpoints, land, return, hold, gimbal angles). No flight logic lives here.
+
+Gimbal (MAVLink gimbal protocol v2 through MAVSDK's gimbal plugin): the plugin's gimbal list is polled until a
+gimbal appears (``System.has_gimbal()`` is not used: it only sees a MAVLink gimbal *component*, not a gimbal
+that the autopilot manages, as PX4 does for most gimbals and the built-in simulator does); the agent then takes
+primary control and subscribes to its attitude: each report goes into ``telemetry`` and, as a
+:class:`shared_msgs.GimbalAttitude`, to ``on_gimbal`` (the agent publishes and records it).
 """
 
 from __future__ import annotations
@@ -18,10 +24,11 @@ from typing import Callable
 
 import numpy as np
 
-from shared_msgs import VehicleState, now_ns
+from shared_msgs import GimbalAttitude, VehicleState, now_ns
 from skycap.errors import SkycapError
 from skycap.frames import geodetic_to_ned
 
+from onboard.agent.gimbal import BootClock, attitude_message
 from onboard.agent.telemetry import LANDED_STATES, Telemetry
 from onboard.setpoint import Setpoint
 
@@ -61,10 +68,15 @@ class MavsdkAutopilot:
         self._seq = 0
         self.offboard_active = False
         self.offboard_since_s = 0.0
+        #: called with every gimbal report (a :class:`GimbalAttitude`) on the event loop
+        self.on_gimbal: Callable[[GimbalAttitude], None] | None = None
         self._gimbal = None
         self._gimbal_id: int | None = None
-        self._gimbal_next_check_s = 0.0
         self._gimbal_warned = False
+        self._gimbal_seq = 0
+        self._gimbal_clock = BootClock()
+        #: seconds the gimbal list is polled before "no gimbal" is logged (it keeps being polled)
+        self.gimbal_discovery_s = 10.0
 
     # --- connection ----------------------------------------------------------------------------------
     async def connect(self, url: str, timeout_s: float = 30.0) -> None:
@@ -153,6 +165,53 @@ class MavsdkAutopilot:
         ]
         for sub, cb in subs:
             self._tasks.append(asyncio.create_task(self._pump(sub, cb), name=f"tel:{sub.__name__}"))
+        if self._system is not None:  # connected (not a test feeding the streams by hand)
+            self._tasks.append(asyncio.create_task(self._discover_gimbal(), name="gimbal:discover"))
+
+    async def _discover_gimbal(self) -> None:
+        """Poll MAVSDK's gimbal list (1 Hz) until a gimbal appears; take primary control; stream its attitude."""
+        from mavsdk.asyncio.plugins.gimbal import ControlMode, GimbalAsync
+
+        try:
+            self._gimbal = GimbalAsync(self._system)
+            t0 = time.monotonic()
+            while True:
+                gimbals = (await self._gimbal.gimbal_list()).gimbals
+                if gimbals:
+                    break
+                if not self._gimbal_warned and time.monotonic() - t0 > self.gimbal_discovery_s:
+                    log.info("%s: no gimbal discovered in %.0f s: the camera keeps its mount pitch (still looking)",
+                             self.drone_id, self.gimbal_discovery_s)
+                    self._gimbal_warned = True
+                await asyncio.sleep(1.0)
+            g = gimbals[0]
+            log.info("%s: gimbal %d discovered (%s %s, manager component %d, device %d)", self.drone_id, g.gimbal_id,
+                     g.vendor_name, g.model_name, g.gimbal_manager_component_id, g.gimbal_device_id)
+            try:
+                await self._gimbal.take_control(g.gimbal_id, ControlMode.PRIMARY)
+            except Exception as e:  # another component may hold it; commands may then be refused
+                log.warning("%s: taking control of gimbal %d failed: %s", self.drone_id, g.gimbal_id, e)
+            self._gimbal_id = g.gimbal_id
+            await self._pump(self._gimbal.subscribe_attitude, self._on_gimbal_attitude)
+        except asyncio.CancelledError:
+            pass
+        except Exception:
+            log.exception("%s: gimbal discovery failed", self.drone_id)
+
+    def _on_gimbal_attitude(self, a) -> None:
+        if self._gimbal_id is not None and a.gimbal_id != self._gimbal_id:
+            return
+        T = self.telemetry
+        t_ns = self._gimbal_clock.to_wall_ns(int(a.timestamp_us), now_ns())
+        w, x, y, z = T.q_world_body_wxyz
+        vehicle_yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        self._gimbal_seq += 1
+        msg = attitude_message(self.drone_id, a, t_ns, self._gimbal_seq, vehicle_yaw)
+        self.telemetry = dataclasses.replace(
+            T, gimbal_id=msg.gimbal_id, gimbal_roll_rad=msg.roll_rad, gimbal_pitch_rad=msg.pitch_rad,
+            gimbal_yaw_rad=msg.yaw_rad, gimbal_yaw_north_rad=msg.yaw_north_rad, gimbal_t_ns=t_ns)
+        if self.on_gimbal is not None:
+            self.on_gimbal(msg)
 
     async def _pump(self, subscribe, cb) -> None:
         try:
@@ -238,34 +297,22 @@ class MavsdkAutopilot:
             AccelerationNed(float(a[0]), float(a[1]), float(a[2])),
         )
 
+    @property
+    def has_gimbal(self) -> bool:
+        """A gimbal was discovered (and control of it asked for)."""
+        return self._gimbal_id is not None
+
     async def set_gimbal_pitch(self, pitch_rad: float) -> bool:
         """Point the camera gimbal (MAVLink gimbal protocol v2 via MAVSDK) to ``pitch_rad`` (negative = down),
-        yaw following the vehicle. False when the vehicle has no gimbal (checked at most every 5 s): the
+        yaw following the vehicle (MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW; returns when the autopilot acknowledged it,
+        raises :class:`AutopilotError` when it refused). False when no gimbal has been discovered (yet): the
         camera then keeps its mount's pitch."""
         if self._gimbal_id is None:
-            now = time.monotonic()
-            if now < self._gimbal_next_check_s:
-                return False
-            self._gimbal_next_check_s = now + 5.0
-            if not await self._system.has_gimbal():
-                if not self._gimbal_warned:
-                    log.info("%s: no gimbal discovered: the camera keeps its mount pitch", self.drone_id)
-                    self._gimbal_warned = True
-                return False
-            from mavsdk.asyncio.plugins.gimbal import ControlMode, GimbalAsync
-
-            self._gimbal = GimbalAsync(self._system)
-            gimbals = (await self._gimbal.gimbal_list()).gimbals
-            if not gimbals:
-                return False
-            gid = gimbals[0].gimbal_id
-            await self._gimbal.take_control(gid, ControlMode.PRIMARY)
-            self._gimbal_id = gid
-            log.info("%s: controlling gimbal %d", self.drone_id, gid)
+            return False
         from mavsdk.asyncio.plugins.gimbal import GimbalMode, SendMode
 
-        await self._gimbal.set_angles(self._gimbal_id, 0.0, math.degrees(pitch_rad), 0.0, GimbalMode.YAW_FOLLOW,
-                                      SendMode.ONCE)
+        await self._do("gimbal set_angles", self._gimbal.set_angles(
+            self._gimbal_id, 0.0, math.degrees(pitch_rad), 0.0, GimbalMode.YAW_FOLLOW, SendMode.ONCE))
         return True
 
     async def start_offboard(self) -> None:
@@ -292,6 +339,9 @@ class MavsdkAutopilot:
             except BaseException:
                 pass
         self._tasks.clear()
+        if self._gimbal is not None:
+            self._gimbal.destroy()
+            self._gimbal = None
         if self._mavsdk is not None:
             self._mavsdk.destroy()
             self._mavsdk = None

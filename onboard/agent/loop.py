@@ -35,6 +35,12 @@ The :class:`Agent` is the wiring; each part has one job and is testable alone:
 Loops (asyncio, one thread + MAVSDK's and Zenoh's own): the control loop (``rates.setpoint_hz``), the
 supervisor (10 Hz: vehicle events, failsafes, health heartbeat) and the telemetry callbacks (50 Hz:
 record state, publish it at ``rates.state_publish_hz``).
+
+Gimbal: the setpoints' camera pitch is sent to the gimbal at <= 2 Hz in the background (a command waits for the
+autopilot's ACK: never in the control loop's way); every gimbal report is published and recorded as
+:class:`~shared_msgs.GimbalAttitude` on ``<drone>/gimbal``; ``gimbal_watch``
+(:class:`onboard.agent.gimbal.GimbalWatch`) turns a gimbal that does not reach its command within 3 s into a
+health warning.
 """
 
 from __future__ import annotations
@@ -49,6 +55,7 @@ import msgspec
 import numpy as np
 
 from comms.transport import deliver_to_loop
+from onboard.agent.gimbal import GimbalWatch
 from onboard.agent.outbox import Outbox
 from onboard.agent.perception import PerceptionStage
 from onboard.agent.rates import RateMeter
@@ -68,6 +75,7 @@ from shared_msgs import (
     CommandAck,
     Detections,
     FormationPlan,
+    GimbalAttitude,
     Health,
     Keypoints2D,
     OrbitPlan,
@@ -120,6 +128,8 @@ class Agent:
         self._last_state_pub_s = 0.0
         self._cpu = (time.monotonic(), time.process_time())
         self._gimbal_sent: tuple[float, float] | None = None
+        self._gimbal_task: asyncio.Task | None = None
+        self.gimbal_watch = GimbalWatch()
         self.supervisor = VehicleSupervisor(cfg, self.mission, autopilot, self.teammates, failsafe=self._failsafe,
                                             stop_setpoints=self._stop_setpoints, resume_offboard=self._resume_offboard,
                                             setpoints_flowing=self._setpoints_flowing, warn=self.warnings.append)
@@ -142,6 +152,7 @@ class Agent:
                                              teammates=self.teammates, autopilot=autopilot, mission=self.mission,
                                              publish=self.outbox.publish)
         autopilot.on_state = self._on_state
+        autopilot.on_gimbal = self._on_gimbal
 
     def ack(self, command_id: str, result: str, reason: str = "") -> None:
         a = CommandAck(header=CommandAck.make_header(self.id), command_id=command_id, result=result, reason=reason)
@@ -167,6 +178,12 @@ class Agent:
                 self.bus.publish(self.outbox.key(keys.STATE), st)
             except Exception as e:
                 log.debug("state publish failed: %s", e)
+
+    def _on_gimbal(self, msg: GimbalAttitude) -> None:
+        """A gimbal report: published and recorded (the gimbal's rate), and checked against the last command."""
+        self.rates.setdefault("gimbal", RateMeter()).tick()
+        self.gimbal_watch.report(time.monotonic(), msg.pitch_rad, msg.yaw_rad)
+        self.outbox.publish(keys.GIMBAL, msg)
 
     def on_gcs_health(self, rx) -> None:
         self.supervisor.on_gcs_heartbeat()
@@ -350,18 +367,33 @@ class Agent:
             await asyncio.sleep(max(0.0, delay))
 
     async def _point_gimbal(self, sp: Setpoint) -> None:
-        """Send the setpoint's camera pitch to the gimbal at <= 2 Hz when it moved by > 0.5 deg."""
-        if sp.gimbal_pitch_rad is None:
+        """Send the setpoint's camera pitch to the gimbal at <= 2 Hz when it moved by > 0.5 deg, in the
+        background (one command in flight at a time)."""
+        if sp.gimbal_pitch_rad is None or (self._gimbal_task is not None and not self._gimbal_task.done()):
             return
         now = time.monotonic()
         last = self._gimbal_sent
         if last is not None and (now - last[0] < 0.5 or abs(sp.gimbal_pitch_rad - last[1]) < math.radians(0.5)):
             return
         self._gimbal_sent = (now, sp.gimbal_pitch_rad)
+        self._gimbal_task = asyncio.get_running_loop().create_task(self._send_gimbal(sp.gimbal_pitch_rad),
+                                                                   name="gimbal")
+
+    async def _send_gimbal(self, pitch_rad: float) -> None:
+        t = time.monotonic()
         try:
-            await self.autopilot.set_gimbal_pitch(sp.gimbal_pitch_rad)
+            if await self.autopilot.set_gimbal_pitch(pitch_rad):
+                self.gimbal_watch.command(t, pitch_rad, 0.0)
+            else:
+                self._gimbal_sent = (t, math.nan)  # no gimbal yet: ask again in 0.5 s even if the pitch is the same
         except Exception as e:
             log.warning("%s: gimbal command failed: %s", self.id, e)
+
+    def _check_gimbal(self, now: float) -> None:
+        w = self.gimbal_watch.check(now)
+        if w is not None:
+            log.warning("%s: %s", self.id, w)
+            self.warnings.append(w)
 
     async def supervisor_loop(self) -> None:
         period = 0.1
@@ -370,6 +402,7 @@ class Agent:
             await asyncio.sleep(period)
             self.supervise_once()
             now = time.monotonic()
+            self._check_gimbal(now)
             if self.tracking is not None:
                 self.tracking.publish_target(now)
             if now - t_health >= 1.0 / self.cfg.rates.health_hz:
@@ -480,6 +513,8 @@ class Agent:
             self.outbox.publish(keys.HEALTH, self.health())
         except Exception:
             pass
+        if self._gimbal_task is not None:
+            self._tasks.append(self._gimbal_task)
         for t in list(self._tasks):
             t.cancel()
         for t in list(self._tasks):

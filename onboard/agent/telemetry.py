@@ -51,6 +51,14 @@ class Telemetry:
     vertical_accuracy_m: float = _NAN
     #: global position, home position and armable all OK
     health_ok: bool = False
+    #: the camera gimbal (MAVSDK's gimbal plugin; 0 / NaN until one is discovered and reports): its MAVSDK id,
+    #: roll and pitch relative to the horizon, yaw relative to the heading and to north (rad), report time (ns)
+    gimbal_id: int = 0
+    gimbal_roll_rad: float = _NAN
+    gimbal_pitch_rad: float = _NAN
+    gimbal_yaw_rad: float = _NAN
+    gimbal_yaw_north_rad: float = _NAN
+    gimbal_t_ns: int = 0
 
     @property
     def altitude_m(self) -> float:

@@ -34,11 +34,13 @@ def camera_pose(
     position_ned_m,
     q_world_body_wxyz,
     gimbal_pitch_rad: float | None = None,
+    gimbal_yaw_rad: float | None = None,
 ) -> np.ndarray:
     """T_world_cam (4, 4) of the camera on a vehicle at ``position_ned_m`` with attitude ``q_world_body``.
 
-    Gimbal mount: roll and pitch stabilised, camera yaw = vehicle yaw, camera pitch = ``gimbal_pitch_rad``
-    (from the vehicle truth) or ``cfg.pitch_deg`` when None. Fixed mount: the camera turns with the body,
+    Gimbal mount: roll and pitch stabilised, camera yaw = vehicle yaw + ``gimbal_yaw_rad`` (the gimbal's yaw
+    relative to the heading; None = 0), camera pitch = ``gimbal_pitch_rad`` (from the vehicle truth) or
+    ``cfg.pitch_deg`` when None. Fixed mount: the camera turns with the body,
     pitched by ``cfg.pitch_deg`` relative to it. The lever arm turns with the body in both cases.
     """
     R_wb = R_from_quat_wxyz(q_world_body_wxyz)
@@ -49,7 +51,8 @@ def camera_pose(
         R_yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         pitch = math.radians(cfg.pitch_deg) if gimbal_pitch_rad is None else float(gimbal_pitch_rad)
         position_cam = np.asarray(position_ned_m, dtype=float) + R_wb @ lever
-        return T_world_cam_from_pose(position_cam, R_yaw, gimbal_pitch_rad=pitch)
+        return T_world_cam_from_pose(position_cam, R_yaw, gimbal_pitch_rad=pitch,
+                                     gimbal_yaw_rad=0.0 if gimbal_yaw_rad is None else float(gimbal_yaw_rad))
     return T_world_cam_from_pose(position_ned_m, R_wb, math.radians(cfg.pitch_deg), lever_arm_body_m=lever)
 
 

@@ -13,7 +13,7 @@ Per frame (``header.sender_id`` = the drone, ``header.t_measurement_ns`` = the t
 
 | topic | message |
 | --- | --- |
-| ``camera_info`` | :class:`CameraInfo`, on the first frame, on a change (gimbal pitch) and every ``info_period_s`` |
+| ``camera_info`` | :class:`CameraInfo`, on the first frame, on a change (gimbal pitch or yaw, > 0.01 deg) and every ``info_period_s`` |
 | ``camera/image`` | :class:`CameraFrame` (JPEG); ``T_world_cam`` = the camera pose from the vehicle's *estimated* pose when the truth carries one, else empty |
 | ``sim/keypoints2d`` | :class:`Keypoints2D`, ``simulated=True``, ``detector="sim_noisy_gt"`` (no person: empty list) |
 | ``sim/keypoints2d_gt`` | :class:`Keypoints2D`, ``simulated=True``, ``detector="ground_truth"``: exact projections, confidence 1 where visible, 0.5 where visible but hidden behind another body part, 0 outside the image or behind the camera; box = GT body box |
@@ -66,7 +66,8 @@ class CameraTruth:
     """What one camera frame is rendered from.
 
     t_ns: capture time (ns, the messages' time base); position_ned_m (3,), q_world_body (4,) (w, x, y, z):
-    the vehicle's TRUE pose; gimbal_pitch_rad: true gimbal pitch (None: the config's pitch);
+    the vehicle's TRUE pose; gimbal_pitch_rad: true gimbal pitch (None: the config's pitch); gimbal_yaw_rad: true
+    gimbal yaw relative to the vehicle's heading (None: 0, the camera looks ahead);
     person_joints_ned_m: (17, 3) or None (no person in the scene); est_*: the vehicle's own estimate
     (what its autopilot reports) or None.
     """
@@ -78,6 +79,7 @@ class CameraTruth:
     person_joints_ned_m: np.ndarray | None = None
     est_position_ned_m: np.ndarray | None = None
     est_q_world_body: np.ndarray | None = None
+    gimbal_yaw_rad: float | None = None
 
 
 def truth_from_messages(truth: SimTruth, drone_id: str, estimate: VehicleState | None = None) -> CameraTruth | None:
@@ -92,6 +94,7 @@ def truth_from_messages(truth: SimTruth, drone_id: str, estimate: VehicleState |
         position_ned_m=np.asarray(v.position_ned_m, dtype=float),
         q_world_body=np.asarray(v.q_world_body, dtype=float),
         gimbal_pitch_rad=float(v.gimbal_pitch_rad),
+        gimbal_yaw_rad=float(v.gimbal_yaw_rad),
         person_joints_ned_m=joints,
         est_position_ned_m=None if estimate is None else np.asarray(estimate.position_ned_m, dtype=float),
         est_q_world_body=None if estimate is None else np.asarray(estimate.q_world_body, dtype=float),
@@ -133,14 +136,14 @@ class CameraNode:
         self.stats = {"frames": 0, "no_truth": 0, "render_ms_sum": 0.0, "cpu_ms_sum": 0.0, "late_frames": 0}
 
     # ------------------------------------------------------------------ messages
-    def camera_info(self, t_ns: int, gimbal_pitch_rad: float) -> CameraInfo:
+    def camera_info(self, t_ns: int, gimbal_pitch_rad: float, gimbal_yaw_rad: float = 0.0) -> CameraInfo:
         c = self.cam
         if self.cam_cfg.mount == "gimbal":
             T_body_cam = make_T(R_body_cam(0.0), self.cam_cfg.lever_arm_body_m)
-            pitch = gimbal_pitch_rad
+            pitch, yaw = gimbal_pitch_rad, gimbal_yaw_rad
         else:
             T_body_cam = make_T(R_body_cam(math.radians(self.cam_cfg.pitch_deg)), self.cam_cfg.lever_arm_body_m)
-            pitch = 0.0
+            pitch = yaw = 0.0
         return CameraInfo(
             header=CameraInfo.make_header(self.drone_id, t_ns, self.frame_index),
             camera_id=self.cam_cfg.camera_id,
@@ -148,6 +151,7 @@ class CameraNode:
             fx_px=c.fx_px, fy_px=c.fy_px, cx_px=c.cx_px, cy_px=c.cy_px,
             T_body_cam=_flat(T_body_cam),
             gimbal_pitch_rad=float(pitch),
+            gimbal_yaw_rad=float(yaw),
         )  # fmt: skip
 
     def _keypoints_msg(self, t_ns: int, detector: str, persons: list[PersonKeypoints]) -> Keypoints2D:
@@ -184,17 +188,20 @@ class CameraNode:
         t_ns = int(truth.t_ns)
         cc = self.cam_cfg
         if not cc.pitch_from_truth:
-            truth = dataclasses.replace(truth, gimbal_pitch_rad=None)
-        T_true = camera_pose(cc, truth.position_ned_m, truth.q_world_body, truth.gimbal_pitch_rad)
+            truth = dataclasses.replace(truth, gimbal_pitch_rad=None, gimbal_yaw_rad=None)
+        # the gimbal's true attitude: pitch to the horizon, yaw relative to the heading
+        gp, gy = truth.gimbal_pitch_rad, truth.gimbal_yaw_rad
+        T_true = camera_pose(cc, truth.position_ned_m, truth.q_world_body, gp, gy)
         T_est = None
         if truth.est_position_ned_m is not None and truth.est_q_world_body is not None:
-            T_est = camera_pose(cc, truth.est_position_ned_m, truth.est_q_world_body, truth.gimbal_pitch_rad)
+            T_est = camera_pose(cc, truth.est_position_ned_m, truth.est_q_world_body, gp, gy)
         frame = self.renderer.render(T_true, truth.person_joints_ned_m)
         out: dict[str, Message] = {}
-        pitch = math.radians(cc.pitch_deg) if truth.gimbal_pitch_rad is None else float(truth.gimbal_pitch_rad)
-        info_key = (round(pitch, 4),)
+        pitch = math.radians(cc.pitch_deg) if gp is None else float(gp)
+        yaw = 0.0 if gy is None else float(gy)
+        info_key = (round(pitch, 4), round(yaw, 4))
         if info_key != self._last_info or (t_ns - self._last_info_t) >= cc.info_period_s * 1e9:
-            out[keys.CAMERA_INFO] = self.camera_info(t_ns, pitch)
+            out[keys.CAMERA_INFO] = self.camera_info(t_ns, pitch, yaw)
             self._last_info, self._last_info_t = info_key, t_ns
         W, H = self.cam.width_px, self.cam.height_px
         out[keys.CAMERA_IMAGE] = CameraFrame(

@@ -22,6 +22,7 @@ from simulator.config import SimConfig
 from simulator.vehicle.controller import ControllerLimits, PositionController, TrajectorySetpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2, DynamicsLimits, MultirotorDynamics
 from simulator.vehicle.environment import Battery, EstimatorErrorModel
+from simulator.vehicle.gimbal import SimGimbal
 from simulator.vehicle.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, ParamStore
 from simulator.vehicle.px4_modes import MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, FlightMode, flight_mode_from_px4
 from skycap.frames import ned_to_geodetic, yaw_from_R
@@ -63,6 +64,9 @@ class VehicleSnapshot:
     est_position_ned_m: np.ndarray | None = None
     est_R_world_body: np.ndarray | None = None
     battery_percent: float = 100.0
+    #: the gimbal's true attitude (pitch relative to the horizon, yaw relative to the heading); None: no gimbal
+    gimbal_pitch_rad: float | None = None
+    gimbal_yaw_rad: float | None = None
 
 
 def default_params(cfg: SimConfig, system_id: int) -> list[Param]:
@@ -126,6 +130,8 @@ class SimVehicle:
             cfg.estimator, seed=cfg.estimator.seed * 1000 + index if seed is None else seed
         )
         self.battery = Battery(cfg.battery)
+        #: the camera gimbal (None: ``gimbal.enabled = false``)
+        self.gimbal: SimGimbal | None = SimGimbal(cfg.gimbal) if cfg.gimbal.enabled else None
         self.params = ParamStore(default_params(cfg, self.system_id), on_change=self._on_param_change)
         self._apply_params()
 
@@ -206,6 +212,8 @@ class SimVehicle:
             est_position_ned_m=self.est_position_ned_m.copy(),
             est_R_world_body=self.est_R_world_body.copy(),
             battery_percent=self.battery.remaining_pct,
+            gimbal_pitch_rad=None if self.gimbal is None else self.gimbal.pitch_rad,
+            gimbal_yaw_rad=None if self.gimbal is None else self.gimbal.yaw_rad,
         )
 
     def _update_estimate(self) -> None:
@@ -422,6 +430,8 @@ class SimVehicle:
             thrust = min(thrust, 0.5 * GRAVITY_M_S2)  # idle on the ground
         self.dyn.step(dt_s, body_z, thrust, yaw_rate, wind_ned_m_s, motors_on=self.armed)
         self.battery.step(dt_s, self.armed, self.dyn.state.thrust_m_s2 / GRAVITY_M_S2)
+        if self.gimbal is not None:
+            self.gimbal.step(dt_s, yaw_from_R(self.dyn.state.R_world_body))
 
     def _wants_ground(self, sp: TrajectorySetpoint) -> bool:
         if sp.body_z_cmd is not None:

@@ -11,7 +11,10 @@ set/get_message_interval, request_message, request_autopilot_capabilities, get_h
 do_set_home; everything else -> MAV_RESULT_UNSUPPORTED), SET_POSITION_TARGET_LOCAL_NED,
 SET_POSITION_TARGET_GLOBAL_INT, SET_ATTITUDE_TARGET, PARAM_REQUEST_LIST/READ, PARAM_SET,
 MISSION_REQUEST_LIST (answers an empty mission), MISSION_CLEAR_ALL, MISSION_COUNT (upload refused),
-TIMESYNC.
+TIMESYNC; the gimbal protocol v2 as PX4 speaks it for a non-MAVLink gimbal (the autopilot is the gimbal manager
+of gimbal device 1): GIMBAL_MANAGER_INFORMATION / GIMBAL_DEVICE_INFORMATION on request,
+MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE / _PITCHYAW, GIMBAL_MANAGER_SET_ATTITUDE / _SET_PITCHYAW, streams of
+GIMBAL_DEVICE_ATTITUDE_STATUS and GIMBAL_MANAGER_STATUS.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from simulator.vehicle.autopilot import SimVehicle
 from skycap.frames import R_from_quat_wxyz, euler_from_R, quat_wxyz_from_R, yaw_from_R
 from simulator.vehicle.controller import TrajectorySetpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2
+from simulator.vehicle.gimbal import quat_wxyz_from_pitch_yaw
 from simulator.vehicle.params import decode_param_value, encode_param_value
 from simulator.vehicle.px4_modes import encode_custom_mode, heartbeat_base_mode
 from skycap.frames import geodetic_to_ned
@@ -85,7 +89,22 @@ STREAMS = {
     "SYSTEM_TIME": (M.MAVLINK_MSG_ID_SYSTEM_TIME, "system_time_hz"),
     "GPS_GLOBAL_ORIGIN": (M.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, "gps_global_origin_hz"),
     "ODOMETRY": (M.MAVLINK_MSG_ID_ODOMETRY, "odometry_hz"),
+    "GIMBAL_DEVICE_ATTITUDE_STATUS": (M.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, "gimbal_device_attitude_status_hz"),
+    "GIMBAL_MANAGER_STATUS": (M.MAVLINK_MSG_ID_GIMBAL_MANAGER_STATUS, "gimbal_manager_status_hz"),
 }
+GIMBAL_STREAMS = ("GIMBAL_DEVICE_ATTITUDE_STATUS", "GIMBAL_MANAGER_STATUS")
+#: the gimbal device id the autopilot manages: 1..6 = a non-MAVLink gimbal behind the autopilot (PX4 with a
+#: PWM/serial gimbal); MAVSDK then addresses the manager (the autopilot) with this device id
+GIMBAL_DEVICE_ID = 1
+GIMBAL_CAP_FLAGS = (
+    M.GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_LOCK
+    | M.GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_AXIS
+    | M.GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_LOCK
+    | M.GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_AXIS
+    | M.GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_FOLLOW
+    | M.GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_LOCK
+    | M.GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME
+)
 MSGID_TO_STREAM = {mid: name for name, (mid, _) in STREAMS.items()}
 #: rates of PX4's "normal" (ground-station) MAVLink instance
 GCS_RATES = RatesConfig(
@@ -102,6 +121,8 @@ GCS_RATES = RatesConfig(
     vfr_hud_hz=4.0,
     system_time_hz=1.0,
     gps_global_origin_hz=0.0,
+    gimbal_device_attitude_status_hz=5.0,
+    gimbal_manager_status_hz=1.0,
 )
 
 
@@ -352,11 +373,32 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             msg = mav.gps_global_origin_encode(
                 int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), int(time.time() * 1e6)
             )
+        elif name == "GIMBAL_DEVICE_ATTITUDE_STATUS":
+            g = v.gimbal
+            if g is None:
+                return False
+            # the true gimbal angles (its encoders); yaw in the vehicle frame, roll and pitch to the horizon
+            msg = mav.gimbal_device_attitude_status_encode(
+                0, 0, t_ms, self._gimbal_flags(), list(quat_wxyz_from_pitch_yaw(g.pitch_rad, g.yaw_rad)),
+                0.0, g.pitch_rate_rad_s, g.yaw_rate_rad_s, 0, v.est_yaw_rad, math.nan, GIMBAL_DEVICE_ID,
+            )  # fmt: skip
+        elif name == "GIMBAL_MANAGER_STATUS":
+            g = v.gimbal
+            if g is None:
+                return False
+            msg = mav.gimbal_manager_status_encode(t_ms, self._gimbal_flags(), GIMBAL_DEVICE_ID, *g.primary_control,
+                                                   *g.secondary_control)
         else:
             return False
         mav.send(msg)
         self.sent_counts[name] += 1
         return True
+
+    def _gimbal_flags(self) -> int:
+        """GIMBAL_DEVICE_FLAGS (= the manager's flags): roll and pitch stabilised, yaw follow or lock."""
+        lock = self.vehicle.gimbal is not None and self.vehicle.gimbal.yaw_lock
+        return (M.GIMBAL_DEVICE_FLAGS_ROLL_LOCK | M.GIMBAL_DEVICE_FLAGS_PITCH_LOCK
+                | M.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME | (M.GIMBAL_DEVICE_FLAGS_YAW_LOCK if lock else 0))
 
     # ------------------------------------------------------------------ receiving
     def handle(self, msg) -> None:
@@ -429,6 +471,15 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             res, after = self._request_message(M.MAVLINK_MSG_ID_HOME_POSITION)
         elif cmd == M.MAV_CMD_DO_SET_HOME:
             res = self._set_home(p, frame)
+        elif cmd == M.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE:
+            res = self._gimbal_configure(msg, p)
+            if res == ap.ACCEPTED:
+                def after():
+                    self.send_stream("GIMBAL_MANAGER_STATUS")
+        elif cmd == M.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW:
+            # param5 = GIMBAL_MANAGER_FLAGS (COMMAND_INT: x), param7 = gimbal device id (COMMAND_INT: z)
+            res = self._gimbal_pitchyaw(msg, int(p[4]) if math.isfinite(p[4]) else 0, math.radians(p[0]),
+                                        math.radians(p[1]), math.radians(p[2]), math.radians(p[3]), p[6])
         else:
             res = ap.UNSUPPORTED
             log.debug("vehicle %d: unsupported command %d", v.system_id, cmd)
@@ -497,14 +548,105 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         """(MAV_RESULT, function sending the message after the ACK)."""
         if msg_id == M.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return ap.ACCEPTED, self._send_autopilot_version
+        if msg_id in (M.MAVLINK_MSG_ID_GIMBAL_MANAGER_INFORMATION, M.MAVLINK_MSG_ID_GIMBAL_DEVICE_INFORMATION):
+            if self.vehicle.gimbal is None:
+                return ap.UNSUPPORTED, None
+            return ap.ACCEPTED, lambda: self._send_gimbal_information(msg_id)
         name = MSGID_TO_STREAM.get(msg_id)
-        if name is None:
+        if name is None or (name in GIMBAL_STREAMS and self.vehicle.gimbal is None):
             return ap.UNSUPPORTED, None
         if (name == "HOME_POSITION" and self.vehicle.home_ned_m is None) or (
             name == "GPS_GLOBAL_ORIGIN" and not self.vehicle.gps_ok
         ):
             return ap.TEMPORARILY_REJECTED, None
         return ap.ACCEPTED, lambda: self.send_stream(name)
+
+    # ------------------------------------------------------------------ gimbal protocol v2 (autopilot = manager)
+    def _send_gimbal_information(self, msg_id: int) -> None:
+        g = self.vehicle.gimbal
+        t_ms = int(self.clock() * 1000) & 0xFFFFFFFF
+        (p0, p1), (y0, y1) = g.pitch_limits_rad, g.yaw_limits_rad
+        if msg_id == M.MAVLINK_MSG_ID_GIMBAL_MANAGER_INFORMATION:
+            self.mav.send(self.mav.gimbal_manager_information_encode(t_ms, GIMBAL_CAP_FLAGS, GIMBAL_DEVICE_ID,
+                                                                     0.0, 0.0, p0, p1, y0, y1))
+        else:
+            self.mav.send(self.mav.gimbal_device_information_encode(
+                t_ms, g.cfg.vendor_name.encode()[:32], g.cfg.model_name.encode()[:32], b"", 1, 1,
+                0x534B59470000 + self.vehicle.system_id, GIMBAL_CAP_FLAGS & 0xFFFF, 0, 0.0, 0.0, p0, p1, y0, y1,
+                GIMBAL_DEVICE_ID,
+            ))  # fmt: skip
+
+    @staticmethod
+    def _for_our_gimbal(device_id: float) -> bool:
+        """A gimbal device id addresses this vehicle's gimbal: 0 (all) or :data:`GIMBAL_DEVICE_ID`."""
+        return math.isfinite(device_id) and int(round(device_id)) in (0, GIMBAL_DEVICE_ID)
+
+    def _gimbal_configure(self, msg, p: list[float]) -> int:
+        """MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE: param1/2 primary, param3/4 secondary control (sysid, compid;
+        -1 leave, -2 the sender, -3 release if the sender holds it), param7 gimbal device id."""
+        g = self.vehicle.gimbal
+        if g is None:
+            return ap.UNSUPPORTED
+        if not self._for_our_gimbal(p[6]):
+            return ap.DENIED
+        sender = (msg.get_srcSystem(), msg.get_srcComponent())
+
+        def assign(current: tuple[int, int], sysid: float, compid: float) -> tuple[int, int]:
+            if not (math.isfinite(sysid) and math.isfinite(compid)) or sysid == -1:
+                return current
+            if sysid == -2:
+                return sender
+            if sysid == -3:
+                return (0, 0) if current == sender else current
+            return int(sysid), int(compid)
+
+        g.primary_control = assign(g.primary_control, p[0], p[1])
+        g.secondary_control = assign(g.secondary_control, p[2], p[3])
+        log.info("vehicle %d: gimbal control primary %s secondary %s", self.vehicle.system_id, g.primary_control,
+                 g.secondary_control)
+        return ap.ACCEPTED
+
+    def _gimbal_pitchyaw(self, msg, flags: int, pitch_rad: float, yaw_rad: float, pitch_rate_rad_s: float,
+                         yaw_rate_rad_s: float, device_id: float) -> int:
+        """Angles (NaN: not set) or, when both angles are NaN, rates. Yaw is relative to the heading unless
+        ``flags`` has YAW_LOCK or YAW_IN_EARTH_FRAME (then relative to north). Only the controllers in charge
+        (primary or secondary) may command; with nobody in charge anyone may (as after boot)."""
+        v, g = self.vehicle, self.vehicle.gimbal
+        if g is None:
+            return ap.UNSUPPORTED
+        if not self._for_our_gimbal(device_id):
+            return ap.DENIED
+        sender = (msg.get_srcSystem(), msg.get_srcComponent())
+        if g.primary_control != (0, 0) and sender not in (g.primary_control, g.secondary_control):
+            log.info("vehicle %d: gimbal command from %s denied: %s is in control", v.system_id, sender,
+                     g.primary_control)
+            return ap.DENIED
+        lock = bool(flags & (M.GIMBAL_MANAGER_FLAGS_YAW_LOCK | M.GIMBAL_MANAGER_FLAGS_YAW_IN_EARTH_FRAME))
+        if math.isfinite(pitch_rad) or math.isfinite(yaw_rad):
+            g.set_angles(pitch_rad, yaw_rad, lock, v.est_yaw_rad)
+        elif math.isfinite(pitch_rate_rad_s) or math.isfinite(yaw_rate_rad_s):
+            g.set_rates(pitch_rate_rad_s, yaw_rate_rad_s, lock, v.est_yaw_rad)
+        else:
+            return ap.DENIED
+        log.debug("vehicle %d: gimbal -> pitch %.1f yaw %.1f deg (%s)", v.system_id, math.degrees(pitch_rad),
+                  math.degrees(yaw_rad), "lock" if lock else "follow")
+        return ap.ACCEPTED
+
+    def _on_GIMBAL_MANAGER_SET_ATTITUDE(self, msg) -> None:
+        if msg.target_component not in (0, AUTOPILOT_COMPONENT_ID):
+            return
+        q = list(msg.q)
+        if all(math.isfinite(x) for x in q) and any(q):
+            _, pitch, yaw = euler_from_R(R_from_quat_wxyz(q))
+        else:
+            pitch = yaw = math.nan
+        self._gimbal_pitchyaw(msg, msg.flags, pitch, yaw, msg.angular_velocity_y, msg.angular_velocity_z,
+                              msg.gimbal_device_id)
+
+    def _on_GIMBAL_MANAGER_SET_PITCHYAW(self, msg) -> None:
+        if msg.target_component not in (0, AUTOPILOT_COMPONENT_ID):
+            return
+        self._gimbal_pitchyaw(msg, msg.flags, msg.pitch, msg.yaw, msg.pitch_rate, msg.yaw_rate, msg.gimbal_device_id)
 
     def _send_autopilot_version(self) -> None:
         sid = self.vehicle.system_id

@@ -136,7 +136,7 @@ def examples() -> dict[str, Message]:
             header=hdr(SimTruth, "sim", 600),
             vehicles=[VehicleTruth(drone_id="drone_1", position_ned_m=(10.0, -3.0, -12.0),
                                    velocity_ned_m_s=(1.5, 0.25, 0.0), q_world_body=(1.0, 0.0, 0.0, 0.0),
-                                   gimbal_pitch_rad=-0.5)],
+                                   gimbal_pitch_rad=-0.5, gimbal_yaw_rad=0.25)],
             person_joints_ned_m=tuple(0.125 * i for i in range(51)), person_root_ned_m=(20.0, 5.5, -0.95),
             person_heading_rad=1.25, person_motion="cmu_02_01",
         ),

@@ -75,3 +75,13 @@ def test_camera_frame_version_1_decodes_as_version_2() -> None:
     assert msg.header.schema_version == CameraFrame.SCHEMA_VERSION == 2
     assert msg.exposure_s is None and msg.source == ""
     assert msg.data == EXAMPLES["camera_frame"].data and msg.T_world_cam == EXAMPLES["camera_frame"].T_world_cam
+
+
+def test_sim_truth_version_1_decodes_as_version_2() -> None:
+    """SimTruth version 1 (before ``VehicleTruth.gimbal_yaw_rad``) decodes with the gimbal yaw 0."""
+    from shared_msgs import SimTruth
+
+    msg = decode((GOLDEN_DIR / "older" / "sim_truth.v1.msgpack").read_bytes(), SimTruth)
+    assert msg.header.schema_version == SimTruth.SCHEMA_VERSION == 2
+    v, ex = msg.vehicles[0], EXAMPLES["sim_truth"].vehicles[0]
+    assert v.gimbal_yaw_rad == 0.0 and v.gimbal_pitch_rad == ex.gimbal_pitch_rad and v.position_ned_m == ex.position_ned_m
