@@ -182,6 +182,8 @@ class Agent:
     def _on_gimbal(self, msg: GimbalAttitude) -> None:
         """A gimbal report: published and recorded (the gimbal's rate), and checked against the last command."""
         self.rates.setdefault("gimbal", RateMeter()).tick()
+        if self.camera_poser is not None:
+            self.camera_poser.add_gimbal(msg)
         self.gimbal_watch.report(time.monotonic(), msg.pitch_rad, msg.yaw_rad)
         self.outbox.publish(keys.GIMBAL, msg)
 
