@@ -118,10 +118,10 @@ class GstSource:
 
     def full_description(self) -> str:
         w, h = self.size
-        scale = ""
+        scale, size = "", ""
         if w > 0 and h > 0:
-            scale = f" ! videoscale ! video/x-raw,width={int(w)},height={int(h)}"
-        return (f"{self.description} ! videoconvert{scale} ! video/x-raw,format=BGR ! appsink name=skycap_sink "
+            scale, size = " ! videoscale", f",width={int(w)},height={int(h)}"
+        return (f"{self.description} ! videoconvert{scale} ! video/x-raw,format=BGR{size} ! appsink name=skycap_sink "
                 f"emit-signals=false sync=false drop=true max-buffers={APPSINK_MAX_BUFFERS}")
 
     def open(self, timeout_s: float = 5.0) -> None:

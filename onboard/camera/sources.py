@@ -163,7 +163,7 @@ class _GstFrameSource(FrameSource):
             self.stats.last_error = str(e)
             raise
         self._gst = g
-        self._last_index = None
+        self._last_index = -1  # a fresh pipeline counts from 0: frames before the first one we get were dropped
         self._last_pts = None
         self.stats.opens += 1
         log.info("%s: opened (%s)", self.describe(), self.latency_model)
@@ -397,8 +397,7 @@ class FileSource(FrameSource):
                 return np.empty(0)
             img = cv2.imread(str(self._images[i]), cv2.IMREAD_COLOR)
             if img is None:
-                log.warning("file source: cannot read image %s; skipped", self._images[i])
-                self.stats.dropped += 1
+                log.warning("file source: cannot read image %s; skipped (counted as dropped)", self._images[i])
                 return np.empty(0)
             return img
         if self._cap is None:
@@ -434,12 +433,12 @@ class FileSource(FrameSource):
                     return None
                 if due > now:
                     time.sleep(due - now)
-                else:  # late: skip the frames whose time has passed (a live camera would have overwritten them)
+                else:  # late: skip the frames whose time has passed (a live camera would have overwritten them);
+                    # the gap in the frame index counts them as dropped
                     late = int((now - due) * self.rate_hz)
                     for _ in range(late):
                         if self._grab(decode=False) is None:
                             break
-                        self.stats.dropped += 1
             index = self._next
             img = self._grab(decode=True)
             if img is None:  # end of the file
@@ -518,10 +517,9 @@ class SimSource(FrameSource):
                 try:
                     self._q.put_nowait(rx)
                     return
-                except queue.Full:
+                except queue.Full:  # overwrite the oldest (the frame-index gap counts it as dropped)
                     try:
                         self._q.get_nowait()
-                        self.stats.dropped += 1
                     except queue.Empty:
                         pass
 
@@ -536,8 +534,7 @@ class SimSource(FrameSource):
         img = cv2.imdecode(np.frombuffer(m.data, np.uint8), cv2.IMREAD_COLOR)
         if img is None:
             self.stats.last_error = f"frame {m.frame_index}: cannot decode its {m.encoding} data"
-            self.stats.dropped += 1
-            return None
+            return None  # the next frame's index gap counts it as dropped
         self._account(int(m.frame_index))
         return Frame(image=img, t_capture_ns=int(m.header.t_measurement_ns), frame_index=int(m.frame_index),
                      t_received_ns=int(rx.t_received_ns), exposure_s=m.exposure_s)
