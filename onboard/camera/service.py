@@ -200,9 +200,12 @@ class CameraService:
                             self._publish_status()
                         self._publish_frame(frame)
                     elif src.ended or now - t_ref > cfg.reconnect_after_s:
-                        why = src.stats.last_error or ("stream ended" if src.ended else "")
-                        silent = f"no frame for {now - t_ref:.1f} s"
-                        self._set_disconnected(f"{silent}: {why}" if why else silent)
+                        if src.ended:
+                            why = src.stats.last_error or "the stream ended"
+                            detail = f"{src.describe()} lost: {why} (last frame {now - t_ref:.1f} s ago)"
+                        else:
+                            detail = f"{src.describe()}: no frame for {now - t_ref:.1f} s"
+                        self._set_disconnected(detail)
                         try:
                             src.close()
                         except Exception as e:

@@ -208,3 +208,14 @@ def test_sim_source_reads_the_simulators_topic(bus_pair) -> None:
     assert [f.frame_index for f in frames][3:] == [6, 7] and src.stats.dropped == 3
     assert frames[2].t_capture_ns == 1_000_000_003 and frames[0].image.shape == (48, 64, 3)
     assert src.describe() == "sim:drone_1"
+
+
+def test_without_pygobject_the_error_names_the_fix(monkeypatch) -> None:
+    import sys
+
+    import onboard.camera.gst as gst_mod
+
+    monkeypatch.setattr(gst_mod, "_gst", None)
+    monkeypatch.setitem(sys.modules, "gi", None)  # as on a base install without the 'camera' extra
+    with pytest.raises(CameraSourceError, match=r"scripts/setup-system.sh then pip install -e \.\[camera\]"):
+        GStreamerSource("videotestsrc").open()

@@ -1,5 +1,10 @@
 """``skycap camera``: ``probe`` a capture source, ``serve`` a drone's camera over Zenoh, ``calibrate`` it
-(:mod:`onboard.camera.calibration_cli`, present when that part is installed)."""
+(:mod:`onboard.camera.calibration_cli`, present when that part is installed).
+
+This module sits beside :mod:`onboard.camera`, not inside it: ``serve`` loads the agent's configuration
+(:mod:`onboard.config`, which itself imports :mod:`onboard.camera`), and a sub-package of ``onboard`` must not
+import back the module that imports it (the import-linter "acyclic siblings" contract).
+"""
 
 from __future__ import annotations
 
