@@ -204,19 +204,21 @@ class GstSource:
         finally:
             buf.unmap(info)
         pts = buf.pts
-        t_capture_ns = None
+        has_pts = pts != Gst.CLOCK_TIME_NONE
+        if not has_pts or self.clock_map is None:  # no timestamp: arrival minus the latency model
+            t_capture_ns = t_received_ns - int(self.arrival_latency_s * 1e9)
+        else:
+            t_capture_ns = self.clock_map.to_realtime_ns(self.pipeline.get_base_time() + pts)
+            t_capture_ns -= int(self.latency_s * 1e9)
         if self._ntp_caps is not None:
             meta = buf.get_reference_timestamp_meta(self._ntp_caps)
             if meta is not None and meta.timestamp != Gst.CLOCK_TIME_NONE:
-                t_capture_ns = int(meta.timestamp) - _NTP_UNIX_OFFSET_NS
+                t_ntp_ns = int(meta.timestamp) - _NTP_UNIX_OFFSET_NS
                 self.ntp_frames += 1
-        has_pts = pts != Gst.CLOCK_TIME_NONE
-        if t_capture_ns is None:
-            if not has_pts or self.clock_map is None:  # no timestamp: arrival minus the latency model
-                t_capture_ns = t_received_ns - int(self.arrival_latency_s * 1e9)
-            else:
-                t_capture_ns = self.clock_map.to_realtime_ns(self.pipeline.get_base_time() + pts)
-                t_capture_ns -= int(self.latency_s * 1e9)
+                if self.ntp_frames == 1:
+                    log.info("%s: RTCP sync: capture times now from the sender's NTP clock (%+.1f ms against the "
+                             "arrival model)", self.name, (t_ntp_ns - t_capture_ns) / 1e6)
+                t_capture_ns = t_ntp_ns
         off = buf.offset
         index = None if off == Gst.BUFFER_OFFSET_NONE else int(off)
         return image, int(t_capture_ns), index, t_received_ns, int(pts) if has_pts else None

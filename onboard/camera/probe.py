@@ -37,6 +37,9 @@ class ProbeReport:
     interval_std_ms: float = float("nan")  #: frame-interval jitter (standard deviation)
     interval_p99_ms: float = float("nan")
     jitter_p99_ms: float = float("nan")  #: 99th percentile of |interval - median interval|
+    #: the same on the receive times: how evenly frames reach the reader (the capture clock may be ideal)
+    arrival_interval_std_ms: float = float("nan")
+    arrival_jitter_p99_ms: float = float("nan")
     latency_mean_ms: float = float("nan")  #: capture -> receive
     latency_p99_ms: float = float("nan")
     latency_max_ms: float = float("nan")
@@ -98,6 +101,9 @@ def probe(source: FrameSource, seconds: float = 5.0, *, open_timeout_s: float = 
         r.interval_mean_ms, r.interval_std_ms = float(iv_ms.mean()), float(iv_ms.std())
         r.interval_p99_ms = float(np.percentile(iv_ms, 99))
         r.jitter_p99_ms = float(np.percentile(np.abs(iv_ms - np.median(iv_ms)), 99))
+        rv_ms = np.diff(arr[:, 1]) / 1e6
+        r.arrival_interval_std_ms = float(rv_ms.std())
+        r.arrival_jitter_p99_ms = float(np.percentile(np.abs(rv_ms - np.median(rv_ms)), 99))
     return r
 
 
@@ -119,6 +125,8 @@ def format_report(r: ProbeReport) -> str:
         ("interval jitter std", ms(r.interval_std_ms)),
         ("interval p99", ms(r.interval_p99_ms)),
         ("|jitter| p99", ms(r.jitter_p99_ms)),
+        ("arrival jitter std", ms(r.arrival_interval_std_ms)),
+        ("arrival |jitter| p99", ms(r.arrival_jitter_p99_ms)),
         ("capture->receive mean", ms(r.latency_mean_ms)),
         ("capture->receive p99", ms(r.latency_p99_ms)),
         ("capture->receive max", ms(r.latency_max_ms)),

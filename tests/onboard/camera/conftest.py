@@ -8,9 +8,7 @@ from pathlib import Path
 import pytest
 
 from tests.helpers.ports import free_tcp_port
-
-#: a live 30 fps 320x240 test pattern
-TEST_PIPELINE = "videotestsrc is-live=true pattern=ball ! video/x-raw,width=320,height=240,framerate=30/1"
+from tests.onboard.camera.support import write_calibration
 
 
 @pytest.fixture()
@@ -61,13 +59,6 @@ def bus_pair():
     b.close()
     a.close()
 
-
-def write_calibration(path: Path, width_px: int = 320, height_px: int = 240, *, distortion: bool = True) -> Path:
-    dist = "distortion_model = \"plumb_bob\"\ndistortion = [-0.1, 0.01, 0.0, 0.0, 0.0]\n" if distortion else ""
-    path.write_text(f"[camera]\nwidth_px = {width_px}\nheight_px = {height_px}\nfx_px = 300.0\nfy_px = 300.0\n"
-                    f"cx_px = {width_px / 2 - 0.5}\ncy_px = {height_px / 2 - 0.5}\n{dist}"
-                    "\n[calibration]\nboard = \"charuco\"\n")
-    return path
 
 
 @pytest.fixture()

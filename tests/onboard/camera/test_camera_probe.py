@@ -16,7 +16,7 @@ from onboard.camera.config import CameraConfig
 from onboard.camera.errors import CameraSourceError
 from onboard.camera.probe import format_report, probe
 from onboard.camera.sources import GStreamerSource, open_source
-from tests.onboard.camera.conftest import TEST_PIPELINE
+from tests.onboard.camera.support import TEST_PIPELINE
 
 
 def test_probe_figures_on_videotestsrc(gst) -> None:

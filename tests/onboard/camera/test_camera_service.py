@@ -14,7 +14,7 @@ from shared_msgs import keys
 from shared_msgs.messages import CameraFrame, CameraInfo, CameraStatus
 from skycap.camera import CameraError, PinholeCamera
 from skycap.config import ConfigError
-from tests.onboard.camera.conftest import TEST_PIPELINE, write_calibration
+from tests.onboard.camera.support import TEST_PIPELINE, write_calibration
 
 
 class Inbox:

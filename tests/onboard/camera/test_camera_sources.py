@@ -13,7 +13,7 @@ from onboard.camera.config import CameraConfig
 from onboard.camera.errors import CameraSourceError
 from onboard.camera.sources import (FileSource, GStreamerSource, RtspSource, SimSource, V4L2Source, open_source,
                                     parse_source)
-from tests.onboard.camera.conftest import TEST_PIPELINE
+from tests.onboard.camera.support import TEST_PIPELINE
 
 
 def read_for(src, seconds: float, max_frames: int = 10_000) -> list:
