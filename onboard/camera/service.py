@@ -368,7 +368,9 @@ def serve(agent_cfg: Any, *, stop: threading.Event | None = None,
             restore.append((sig, signal.signal(sig, lambda signum, _frame: stop.set())))
     try:
         with Transport.open(agent_cfg.transport, node_id=f"{agent_cfg.drone_id}-camera") as bus:
-            svc = CameraService(cam_cfg, bus, agent_cfg.fleet, agent_cfg.drone_id).start()
+            # a file served as a camera (bench tests) replays in a loop rather than re-opening after each end
+            svc = CameraService(cam_cfg, bus, agent_cfg.fleet, agent_cfg.drone_id,
+                                loop_file=cam_cfg.source == "file").start()
             log.info("camera %s of %s: serving %s on %s", cam_cfg.camera_id, agent_cfg.drone_id,
                      svc.source.describe(), keys.drone_key(agent_cfg.fleet, agent_cfg.drone_id, "camera/*"))
             if on_started is not None:
