@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "simulator.cli",
     "simulator.scene.cli",
     "onboard.cli",
+    "onboard.camera_cli",
     "flightdata.flightlog",
     "onboard.detector.cli",
     "groundstation.cli",
