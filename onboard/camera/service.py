@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import signal
 import threading
 import time
@@ -44,6 +45,7 @@ from shared_msgs import keys
 from shared_msgs.messages import CameraFrame, CameraInfo, CameraStatus
 from skycap.camera import CameraError, PinholeCamera
 from skycap.config import ConfigError
+from skycap.frames import R_body_cam, make_T
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +128,12 @@ class CameraService:
         self._ever_opened = False
         self._last_log: dict[str, float] = {}
         self._last_disconnect_detail = ""
+        # the mount, as CameraInfo carries it: T_body_cam at zero gimbal angles (a fixed mount's pitch inside it),
+        # and for a gimbal the pitch assumed until the gimbal reports (its reports are recorded on <drone>/gimbal)
+        pitch = math.radians(cfg.pitch_deg)
+        R = R_body_cam(0.0 if cfg.mount == "gimbal" else pitch)
+        self._T_body_cam = tuple(float(v) for v in make_T(R, np.asarray(cfg.lever_arm_body_m, dtype=float)).ravel())
+        self._info_pitch_rad = pitch if cfg.mount == "gimbal" else 0.0
 
     # ------------------------------------------------------------------------------------------ life
     def start(self) -> "CameraService":
@@ -315,6 +323,7 @@ class CameraService:
             fx_px=c.fx_px, fy_px=c.fy_px, cx_px=c.cx_px, cy_px=c.cy_px,
             distortion_model=c.distortion_model,  # type: ignore[arg-type]
             distortion=tuple(c.distortion) if c.distortion_model != "none" else (),
+            T_body_cam=self._T_body_cam, gimbal_pitch_rad=self._info_pitch_rad,
         )  # fmt: skip
 
     def _publish_info(self) -> None:

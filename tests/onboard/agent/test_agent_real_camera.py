@@ -54,7 +54,7 @@ def test_agent_records_and_detects_on_a_gstreamer_camera(flight, tmp_path):
     frames = [m for m in log.messages(["camera/image"])]
     assert len(frames) >= 40, log.topic_counts()
     fr: list[CameraFrame] = [m.msg for m in frames]
-    assert {f.source for f in fr} == {"gstreamer"} and {(f.width_px, f.height_px) for f in fr} == {(320, 240)}
+    assert {f.source for f in fr} == {f"gstreamer:{PIPELINE}"} and {(f.width_px, f.height_px) for f in fr} == {(320, 240)}
     t_cap = np.array([f.header.t_measurement_ns for f in fr])
     t_rec = np.array([m.log_time_ns for m in frames])
     assert np.all(np.diff(t_cap) > 0)  # capture times strictly increasing
