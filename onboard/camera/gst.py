@@ -44,11 +44,30 @@ _gst: tuple[Any, Any] | None = None
 _gst_lock = threading.Lock()
 
 
+def _keep_gcc_unwinder() -> None:
+    """Put libgcc_s's ``_Unwind_*`` in the process's global symbol scope before GStreamer brings libunwind there.
+
+    libgstreamer links libunwind (for its debug backtraces), and PyGObject loads it with RTLD_GLOBAL. A C++
+    library loaded or lazily bound afterwards (onnxruntime: every exception it throws, even one it catches itself)
+    then resumes unwinding with libunwind's ``_Unwind_Resume`` on a frame libgcc's unwinder raised: abort. Seen
+    here: the person detector opening a corrupt model file killed a process that had opened a camera. Loading
+    libgcc_s globally first makes every later lookup find libgcc's unwinder."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("gcc_s") or "libgcc_s.so.1"
+    try:
+        ctypes.CDLL(name, mode=ctypes.RTLD_GLOBAL)
+    except OSError as e:  # not glibc / no libgcc_s: nothing to protect
+        log.debug("libgcc_s not loaded globally (%s)", e)
+
+
 def require_gst() -> tuple[Any, Any]:
     """``(Gst, GLib)`` from PyGObject, initialised; a :class:`CameraSourceError` naming the fix when absent."""
     global _gst
     with _gst_lock:
         if _gst is None:
+            _keep_gcc_unwinder()
             try:
                 import gi
 
