@@ -13,9 +13,9 @@ python -c "import torch" 2>/dev/null || python -m pip install -q torch==2.13.0
 python -m pip install -q -e ".[all,test]"
 # the GStreamer camera sources (V4L2, pipelines, RTSP) need PyGObject, built against the system's GStreamer and
 # gobject-introspection (scripts/setup-system.sh installs them as root); without them those sources say so
-if pkg-config --exists gobject-introspection-1.0 gstreamer-1.0 2>/dev/null; then
+if pkg-config --exists gobject-introspection-1.0 cairo 2>/dev/null; then
     python -c "import gi" 2>/dev/null || python -m pip install -q -e ".[camera]"
 else
-    echo "setup: no GStreamer / gobject-introspection development files; the GStreamer camera sources are off" \
+    echo "setup: no gobject-introspection / cairo development files for PyGObject; the GStreamer camera sources are off" \
          "(run scripts/setup-system.sh as root)" >&2
 fi
