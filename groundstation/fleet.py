@@ -23,11 +23,13 @@ from typing import Callable, Iterable
 from shared_msgs import Command, CommandAck, Health, OrbitPlan, VehicleState, keys
 from skycap.errors import SkycapError
 from comms.transport import Transport, TransportConfig
+from onboard.config import SafetyConfig
+from onboard.mission import validate_plan
 from onboard.orbit import evenly_spaced_phases
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FleetClient", "FleetError", "make_orbit_plan"]
+__all__ = ["FleetClient", "FleetError", "check_plan", "make_orbit_plan"]
 
 
 class FleetError(SkycapError):
@@ -55,8 +57,14 @@ def make_orbit_plan(
     ids = list(drone_ids)
     if not ids:
         raise FleetError("an orbit plan needs at least one drone id (e.g. drone_1)")
+    dup = sorted({d for d in ids if ids.count(d) > 1})
+    if dup:
+        raise FleetError(f"drone {', '.join(dup)} named more than once in the plan's drones {ids}: one slot per drone")
+    bad_id = [d for d in ids if not keys.valid_segment(d)]
+    if bad_id:
+        raise FleetError(f"drone id {bad_id[0]!r}: letters, digits, '_' or '-' only (e.g. drone_1)")
     start_ns = time.time_ns() + int(start_in_s * 1e9) if start_in_s > 0 else 0
-    return OrbitPlan(
+    plan = OrbitPlan(
         header=OrbitPlan.make_header(keys.GCS),
         plan_id=plan_id or f"plan-{uuid.uuid4().hex[:8]}",
         center_ned_m=tuple(float(x) for x in center_ned_m),
@@ -70,6 +78,24 @@ def make_orbit_plan(
         min_separation_m=float(min_separation_m),
         max_speed_m_s=float(max_speed_m_s),
     )
+    check_plan(plan)
+    return plan
+
+
+def check_plan(plan: OrbitPlan, safety: SafetyConfig | None = None) -> None:
+    """Refuse, before it is sent, a plan the drones would refuse: the agents' own check
+    (:func:`onboard.mission.validate_plan`: finite values, positive radius, altitude inside the band, slot speed,
+    slot separation, gimbal pitch) for every slot, against ``safety`` (default: the agents' default limits).
+    A :class:`FleetError` names the field and the rule."""
+    safety = safety or SafetyConfig()
+    if not plan.phase_offset_rad:
+        raise FleetError(f"plan {plan.plan_id}: no drone slots (phase_offset_rad is empty)")
+    if plan.direction not in (-1, 1):
+        raise FleetError(f"plan {plan.plan_id}: bad field direction={plan.direction}: use 1 or -1")
+    for drone_id in plan.phase_offset_rad:
+        reason = validate_plan(plan, drone_id, safety, plan.header.t_sent_ns)
+        if reason is not None:
+            raise FleetError(f"plan {plan.plan_id} not sent: {reason}")
 
 
 class FleetClient:
@@ -175,7 +201,8 @@ class FleetClient:
 
     # --- outputs ----------------------------------------------------------------------------------
     def send_plan(self, plan: OrbitPlan) -> OrbitPlan:
-        """Publish ``plan`` (latched: agents starting later query it)."""
+        """Check ``plan`` (:func:`check_plan`) and publish it (latched: agents starting later query it)."""
+        check_plan(plan)
         self.bus.publish(keys.gcs_key(self.fleet, keys.PLAN), plan, latch=True)
         log.info("plan %s sent: radius %.1f m, altitude %.1f m, %.3f rad/s, slots %s", plan.plan_id, plan.radius_m,
                  plan.altitude_m, plan.angular_speed_rad_s,
@@ -196,6 +223,10 @@ class FleetClient:
         (``expect``; default: the target, or every drone alive for "*"). Returns {drone_id: ack}."""
         if expect is None:
             expect = [target] if target != "*" else self.drones()
+        expect = list(expect)
+        if not expect:
+            raise FleetError(f"'{action}' not sent: no drone of fleet {self.fleet!r} is present (check the fleet id, "
+                             "that the agents run, and that they and this client reach the same Zenoh endpoint)")
         cmd = self.send_command(action, target, params)
         return self.wait_acks(cmd.command_id, expect, wait_s, results)
 

@@ -49,6 +49,11 @@ SIM = "sim"
 _SEGMENT = re.compile(r"^[A-Za-z0-9_\-]+$")
 
 
+def valid_segment(name: str) -> bool:
+    """Whether ``name`` can be a key segment (fleet or node id): letters, digits, '_' or '-'."""
+    return bool(_SEGMENT.match(str(name)))
+
+
 def _check(name: str, what: str) -> str:
     if not _SEGMENT.match(name):
         raise ValueError(f"{what} {name!r} must be letters, digits, '_' or '-' (it becomes a Zenoh key segment)")

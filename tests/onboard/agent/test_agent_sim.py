@@ -11,7 +11,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from groundstation.fleet import make_orbit_plan
+from groundstation.fleet import FleetError, make_orbit_plan
 from shared_msgs import Command, CommandAck, OrbitPlan, VehicleState, encode, keys, now_ns
 
 pytestmark = pytest.mark.slow
@@ -53,8 +53,13 @@ def test_agent_flies_orbit_refuses_bad_input_and_lands(flight):
     assert r_rmse < 0.5 and a_rmse < 0.3, (r_rmse, a_rmse)
 
     # a plan with a bad field: refused with the reason, the orbit goes on unchanged
-    bad = make_orbit_plan(["drone_1"], center, radius_m=-2.0, altitude_m=4.0)
-    fl.fleet.send_plan(bad)
+    # (the fleet client refuses to send it; a client that does not check, or a peer, still gets the agent's refusal)
+    with pytest.raises(FleetError, match="radius_m"):
+        make_orbit_plan(["drone_1"], center, radius_m=-2.0, altitude_m=4.0)
+    bad = msgspec.structs.replace(make_orbit_plan(["drone_1"], center, radius_m=2.0, altitude_m=4.0), radius_m=-2.0)
+    with pytest.raises(FleetError, match="radius_m"):
+        fl.fleet.send_plan(bad)
+    fl.bus.publish(keys.gcs_key(fl.fleet_id, keys.PLAN), bad, latch=True)
     ack = fl.fleet.wait_acks(bad.plan_id, ["drone_1"], 5)["drone_1"]
     assert ack.result == "refused" and "radius_m" in ack.reason
     wrong = make_orbit_plan(["drone_7"], center, radius_m=4.0, altitude_m=4.0)
