@@ -16,7 +16,6 @@ stated as such: neither was measured here).
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "onboard" / "tracking"))
 from _machine import describe_machine  # noqa: E402
+from bench_perception import timeit  # noqa: E402
 from bench_tracking import bench_filter, bench_mpc  # noqa: E402
 
 from onboard.camera.pose import CameraPoser  # noqa: E402
@@ -44,16 +44,9 @@ BOARDS = {"Raspberry Pi 5 (4x Cortex-A76 2.4 GHz)": (0.45, 0.65),
 
 
 def timed(fn, repeats: int, warmup: int = 2) -> tuple[float, float]:
-    """(median wall ms, median CPU ms of this process) of ``fn()``."""
-    for _ in range(warmup):
-        fn()
-    walls, cpus = [], []
-    for _ in range(repeats):
-        c0, t0 = time.process_time(), time.perf_counter()
-        fn()
-        walls.append(time.perf_counter() - t0)
-        cpus.append(time.process_time() - c0)
-    return statistics.median(walls) * 1e3, statistics.median(cpus) * 1e3
+    """(median wall ms, median CPU ms of this process) of ``fn()`` (bench_perception's timer)."""
+    _mn, med, _p90, cpu = timeit(fn, repeats, warmup)
+    return med * 1e3, cpu * 1e3
 
 
 def capture_cost(width: int, height: int, fps: int, seconds: float) -> tuple[float, float, int, int]:

@@ -1,5 +1,5 @@
 """``skycap camera``: ``probe`` a capture source, ``serve`` a drone's camera over Zenoh, ``calibrate`` it
-(:mod:`onboard.camera.calibration_cli`, present when that part is installed).
+(:mod:`onboard.camera.calibration_cli`).
 
 This module sits beside :mod:`onboard.camera`, not inside it: ``serve`` loads the agent's configuration
 (:mod:`onboard.config`, which itself imports :mod:`onboard.camera`), and a sub-package of ``onboard`` must not
@@ -9,15 +9,12 @@ import back the module that imports it (the import-linter "acyclic siblings" con
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import logging
 
 from skycap.config import add_config_args
 
 log = logging.getLogger(__name__)
-
-CALIBRATION_CLI = "onboard.camera.calibration_cli"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,17 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     cam_sub = p.add_subparsers(dest="camera_command", metavar="SUBCOMMAND")
     _add_probe(cam_sub)
     _add_serve(cam_sub)
-    _add_calibrate(cam_sub)
+    from onboard.camera.calibration_cli import add_parser as add_calibrate
 
-
-def _add_calibrate(cam_sub: argparse._SubParsersAction) -> None:
-    try:
-        mod = importlib.import_module(CALIBRATION_CLI)
-    except ModuleNotFoundError as e:  # not built yet: no calibrate subcommand
-        if e.name and CALIBRATION_CLI.startswith(e.name):
-            return
-        raise
-    mod.add_parser(cam_sub)
+    add_calibrate(cam_sub)
 
 
 def _add_probe(cam_sub: argparse._SubParsersAction) -> None:

@@ -26,6 +26,20 @@ def cmu_dir(shared_data: Path) -> Path:
     return shared_data / "mocap" / "cmu"
 
 
+@pytest.fixture()
+def bus_pair():
+    """Two real Zenoh sessions on loopback: ``a`` opens the rendezvous, ``b`` a peer joining it."""
+    from comms.transport import Transport, TransportConfig
+    from tests.helpers.ports import free_tcp_port
+
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    a = Transport.open(TransportConfig.rendezvous(ep), "a")
+    b = Transport.open(TransportConfig.local_peer(ep), "b")
+    yield a, b
+    b.close()
+    a.close()
+
+
 @pytest.fixture
 def flight(tmp_path):
     """``flight(n, sim_overrides)`` -> a :class:`tests.helpers.flight.Flight`, closed after the test."""

@@ -23,16 +23,6 @@ def state(i: int) -> VehicleState:
     )
 
 
-@pytest.fixture()
-def pair():
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    a = Transport.open(TransportConfig.rendezvous(ep), "a")
-    b = Transport.open(TransportConfig.local_peer(ep), "b")
-    yield a, b
-    b.close()
-    a.close()
-
-
 def test_config_validation_names_the_field() -> None:
     with pytest.raises(TransportError, match="transport.connect endpoint 'localhost'"):
         TransportConfig(connect=["localhost"]).validate()
@@ -61,15 +51,15 @@ def test_port_in_use_is_a_clear_error() -> None:
             Transport.open(TransportConfig.rendezvous(ep), "second")
 
 
-def test_closed_transport_refuses_publish(pair) -> None:
-    a, _ = pair
+def test_closed_transport_refuses_publish(bus_pair) -> None:
+    a, _ = bus_pair
     a.close()
     with pytest.raises(TransportError, match="closed"):
         a.publish("skycap/v1/f/drone_1/state", state(0))
 
 
-def test_async_iterator_and_callback_errors(pair) -> None:
-    a, b = pair
+def test_async_iterator_and_callback_errors(bus_pair) -> None:
+    a, b = bus_pair
     key = keys.drone_key("f", "drone_1", keys.STATE)
 
     def boom(rx) -> None:
@@ -98,8 +88,8 @@ def test_async_iterator_and_callback_errors(pair) -> None:
     assert bad.stats.callback_errors == 5 and bad.stats.received == 5
 
 
-def test_latched_value_is_served_to_queries(pair) -> None:
-    a, b = pair
+def test_latched_value_is_served_to_queries(bus_pair) -> None:
+    a, b = bus_pair
     key = keys.gcs_key("f", keys.PLAN)
     plan = OrbitPlan(
         header=OrbitPlan.make_header("gcs"), plan_id="p1", center_ned_m=(0.0, 0.0, 0.0), radius_m=8.0,
@@ -114,8 +104,8 @@ def test_latched_value_is_served_to_queries(pair) -> None:
     assert [r.msg.plan_id for r in b.query_latest(keys.gcs_key("f", "*"), OrbitPlan, timeout_s=2.0)] == ["p2"]
 
 
-def test_async_iteration_ends_on_close(pair) -> None:
-    a, b = pair
+def test_async_iteration_ends_on_close(bus_pair) -> None:
+    a, b = bus_pair
     key = keys.drone_key("f", "drone_1", keys.STATE)
 
     async def main() -> tuple[int, int]:

@@ -1,5 +1,5 @@
 """Fixtures of the camera tests: GStreamer (skipped with the reason where absent), a loopback RTSP server, a
-pair of Zenoh sessions on loopback, a calibration file."""
+calibration file (the pair of Zenoh sessions, ``bus_pair``, is in tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -45,20 +45,6 @@ def rtsp_server(gst):
     yield make
     for s in servers:
         s.stop()
-
-
-@pytest.fixture()
-def bus_pair():
-    """Two Zenoh sessions on loopback (rendezvous a, peer b)."""
-    from comms.transport import Transport, TransportConfig
-
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    a = Transport.open(TransportConfig.rendezvous(ep), "a")
-    b = Transport.open(TransportConfig.local_peer(ep), "b")
-    yield a, b
-    b.close()
-    a.close()
-
 
 
 @pytest.fixture()
