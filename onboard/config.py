@@ -11,7 +11,7 @@ from comms.transport import TransportConfig
 from onboard.camera.config import CameraConfig
 from skycap.config import ConfigError
 
-__all__ = ["AgentConfig", "TrackConfig", "FormationFailsafeConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
+__all__ = ["AgentConfig", "AutopilotConfig", "TrackConfig", "FormationFailsafeConfig", "OriginConfig", "SafetyConfig", "RatesConfig", "FlightConfig", "RecordConfig"]
 
 
 @dataclass
@@ -44,7 +44,8 @@ class SafetyConfig:
     sigterm_land_timeout_s: float = 20.0
     #: another drone closer than the plan's min_separation_m while airborne: "hold", "land" or "warn"
     separation_action: str = "hold"
-    #: when PX4 drops offboard to HOLD (setpoint stream stalled), switch back this many times per minute
+    #: when the autopilot leaves offboard after a stall of the setpoint stream (its offboard-loss Hold / Return;
+    #: see ``autopilot.on_failsafe``), switch back this many times per minute
     #: at most (0: never; then the drone pauses until the operator sends start again)
     offboard_resumes_per_min: int = 3
     #: plan altitude band (metres above ground)
@@ -67,6 +68,70 @@ class FlightConfig:
     health_timeout_s: float = 30.0
 
 
+#: PX4's values of the failsafe-action parameters the agent sets (COM_OBL_RC_ACT / NAV_RCL_ACT)
+OFFBOARD_LOSS_ACTIONS = {"return": 3, "land": 4, "hold": 5}
+RC_LOSS_ACTIONS = {"hold": 1, "return": 2, "land": 3}
+
+
+@dataclass
+class AutopilotConfig:
+    """What the agent expects of its autopilot (PX4 or the built-in simulator), set or checked at connect.
+
+    With ``set_params`` the agent writes these PX4 parameters at connect and logs every value it changed (with
+    ``false`` it only reads them and warns where they differ). A parameter the autopilot does not have is
+    reported once and skipped. ``on_failsafe`` is the agent's policy when the autopilot takes the vehicle out
+    of offboard itself (its offboard-loss failsafe after a stall of the agent, or its own Return / Hold):
+    "resume" = report it and switch back to offboard as soon as the setpoints flow again (at most
+    ``safety.offboard_resumes_per_min`` times a minute; an autopilot LAND is always followed), "follow" =
+    report it and leave the vehicle to the autopilot's action (Return / Land followed, Hold = paused).
+    """
+
+    set_params: bool = True
+    #: COM_OF_LOSS_T: seconds without setpoints before the autopilot's offboard-loss failsafe
+    offboard_loss_timeout_s: float = 1.0
+    #: COM_OBL_RC_ACT: the autopilot's reaction to offboard loss: "hold", "land" or "return" (PX4's default with
+    #: no RC link is Return, which climbs to its RTL altitude above a fleet)
+    offboard_loss_action: str = "hold"
+    #: NAV_RCL_ACT: the reaction to a lost RC link (a safety pilot's radio): "hold", "return" or "land"
+    rc_loss_action: str = "return"
+    #: RTL_RETURN_ALT and RTL_DESCEND_ALT: Return mode's altitude above home (m; PX4 defaults 60 / 30)
+    rtl_return_alt_m: float = 15.0
+    #: "resume" or "follow" (see above)
+    on_failsafe: str = "resume"
+    #: seconds the agent waits for a commanded mode to show in the autopilot's reported mode (PX4 reports its
+    #: mode in its 1 Hz heartbeat), once re-sent, before calling the command failed
+    mode_confirm_timeout_s: float = 3.0
+    #: after the autopilot took over (``on_failsafe = "resume"``): seconds to wait for the setpoint stream to
+    #: flow again before following the autopilot's action instead
+    resume_wait_s: float = 3.0
+
+    def params(self, takeoff_altitude_m: float) -> dict[str, float | int]:
+        """The PX4 parameters the agent relies on: name -> value (ints for PX4's INT32 parameters)."""
+        return {
+            "COM_OF_LOSS_T": float(self.offboard_loss_timeout_s),
+            "COM_OBL_RC_ACT": OFFBOARD_LOSS_ACTIONS[self.offboard_loss_action],
+            "NAV_RCL_ACT": RC_LOSS_ACTIONS[self.rc_loss_action],
+            "MIS_TAKEOFF_ALT": float(takeoff_altitude_m),
+            "RTL_RETURN_ALT": float(self.rtl_return_alt_m),
+            "RTL_DESCEND_ALT": float(self.rtl_return_alt_m),
+        }
+
+    def validate(self) -> None:
+        if self.offboard_loss_action not in OFFBOARD_LOSS_ACTIONS:
+            raise ConfigError(f"autopilot.offboard_loss_action={self.offboard_loss_action!r}; use "
+                              f"{' / '.join(OFFBOARD_LOSS_ACTIONS)}")
+        if self.rc_loss_action not in RC_LOSS_ACTIONS:
+            raise ConfigError(f"autopilot.rc_loss_action={self.rc_loss_action!r}; use {' / '.join(RC_LOSS_ACTIONS)}")
+        if self.on_failsafe not in ("resume", "follow"):
+            raise ConfigError(f"autopilot.on_failsafe={self.on_failsafe!r}; use 'resume' or 'follow'")
+        if not 0.2 <= self.offboard_loss_timeout_s <= 10.0:
+            raise ConfigError(f"autopilot.offboard_loss_timeout_s={self.offboard_loss_timeout_s}: use 0.2..10 s")
+        if not 5.0 <= self.rtl_return_alt_m <= 120.0:
+            raise ConfigError(f"autopilot.rtl_return_alt_m={self.rtl_return_alt_m}: use 5..120 m above home")
+        if self.mode_confirm_timeout_s <= 0 or self.resume_wait_s < 0:
+            raise ConfigError("autopilot.mode_confirm_timeout_s must be > 0 and resume_wait_s >= 0")
+
+
 @dataclass
 class RecordConfig:
     """Flight recording (MCAP, one file per drone)."""
@@ -78,11 +143,14 @@ class RecordConfig:
 
 @dataclass
 class OriginConfig:
-    """Geodetic origin of the flight's world NED frame (WGS-84, altitude AMSL).
+    """Geodetic origin of the flight's world NED frame (WGS-84): it fixes the *horizontal* frame only.
 
-    The autopilot's local NED frame is about its own EKF origin (PX4: where it got its first fix); the
-    agent converts between the two with the vehicle's global position. Default: PX4 SITL's field, the
-    built-in simulator's default origin.
+    North and east are about (``lat_deg``, ``lon_deg``). Down is about the ground the drone took off from:
+    every altitude (plans, setpoints, recorded states) is height above the autopilot's home, which PX4 sets
+    where it armed (the ground is taken as flat across the flight area). ``alt_m`` is kept for reference (the
+    ground's altitude AMSL at the origin; it is not used for heights). The autopilot's local NED frame is about
+    its own EKF origin; the agent converts with the vehicle's global position and its height above home.
+    Default: PX4 SITL's field, the built-in simulator's default origin.
     """
 
     lat_deg: float = 47.397742
@@ -173,6 +241,7 @@ class AgentConfig:
     #: seconds to wait for the autopilot to appear
     connect_timeout_s: float = 30.0
     origin: OriginConfig = field(default_factory=OriginConfig)
+    autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
     rates: RatesConfig = field(default_factory=RatesConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
@@ -190,6 +259,7 @@ class AgentConfig:
 
     def validate(self) -> "AgentConfig":
         self.camera.validate()
+        self.autopilot.validate()
         if self.mode not in ("orbit", "track"):
             raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
         if self.track.detections not in ("auto", "sim", "onnx"):

@@ -227,19 +227,21 @@ class Mission:
     def offboard_lost(self, mode: str, may_resume: bool) -> Transition:
         """The autopilot left offboard while we fly the orbit (or hold in offboard).
 
-        ``mode`` is the autopilot's new mode (MAVSDK name). HOLD is PX4's offboard-loss failsafe (our stream
-        stalled): resume when ``may_resume``. LAND / RETURN_TO_LAUNCH are followed. Any other mode means a
-        pilot took control: pause and leave the vehicle to them until the operator sends ``start``.
+        ``mode`` is the autopilot's new mode (MAVSDK name). ``may_resume`` (the supervisor's decision: the
+        autopilot's offboard-loss failsafe after a stall of ours, policy "resume", budget left): HOLD or RETURN is
+        undone (switch back to offboard). Otherwise LAND / RETURN_TO_LAUNCH are followed, and any other mode (HOLD
+        without resuming, or a pilot's mode) pauses: the vehicle is left to it until the operator sends ``start``.
+        An autopilot LAND is always followed.
         """
         s = self.state
         if s not in (State.ORBIT, State.PAUSED):
             return Transition(s, Action.NONE)
         if mode == "LAND":
             return self._go(State.LANDING, Action.NONE)
+        if mode in ("HOLD", "RETURN_TO_LAUNCH") and may_resume:
+            return Transition(s, Action.RESUME_OFFBOARD)
         if mode == "RETURN_TO_LAUNCH":
             return self._go(State.RETURNING, Action.NONE)
-        if mode == "HOLD" and may_resume:
-            return Transition(s, Action.RESUME_OFFBOARD)
         return self._go(State.PAUSED, Action.NONE)
 
     def trigger_failsafe(self, reason: str, action: str) -> Transition:

@@ -6,6 +6,22 @@ calls ``on_state(VehicleState)`` for each position/velocity sample (the autopilo
 recorder keeps), and turns the agent's intents into MAVSDK calls
 (arm, takeoff, offboard setpoints, land, return, hold, gimbal angles). No flight logic lives here.
 
+Frames: the autopilot's local NED frame is about its EKF origin. The adapter finds that origin in the flight's
+world frame from the same estimate's global position: north / east about the configured geodetic ``origin``
+(once, averaged over the first samples), down about the autopilot's *home* (the home's altitude minus the EKF
+origin's, both AMSL; updated whenever the autopilot reports a new home while on the ground: PX4 sets home where
+it boots and again where it arms), so every height is above the take-off point, whatever the ground's altitude
+above mean sea level (PX4 SITL's SIH ground is 489.4 m, a configured origin 488 m: 1.4 m of error otherwise),
+and a barometric drift between boot and arming is taken out at each arming.
+
+Modes: an acknowledged mode command is not trusted; :meth:`MavsdkAutopilot._confirm_mode` waits until the
+vehicle *reports* the mode (PX4 reports it in its 1 Hz heartbeat), sends the command once more if it does not,
+and raises :class:`AutopilotError` naming the mode it stayed in. Before arming, a vehicle that landed from
+offboard (PX4 then keeps reporting OFFBOARD and is not armable) is put in HOLD first.
+
+Parameters: :meth:`MavsdkAutopilot.apply_params` reads (and with ``set`` writes) the PX4 parameters the agent
+relies on (:meth:`onboard.config.AutopilotConfig.params`) and logs each value it changed.
+
 Gimbal (MAVLink gimbal protocol v2 through MAVSDK's gimbal plugin): the plugin's gimbal list is polled until a
 gimbal appears (``System.has_gimbal()`` is not used: it only sees a MAVLink gimbal *component*, not a gimbal
 that the autopilot manages, as PX4 does for most gimbals and the built-in simulator does); the agent then takes
@@ -57,6 +73,8 @@ class MavsdkAutopilot:
         #: world = local + offset (NED metres); estimated from global vs local position on the ground
         self.local_to_world_ned_m: np.ndarray | None = None
         self._offset_acc: list[np.ndarray] = []
+        #: the autopilot's EKF origin altitude (AMSL m) = global altitude + local down, from the first samples
+        self.ekf_origin_alt_m: float | None = None
         self._offset_samples = int(offset_samples)
         self.on_state = on_state
         self._mavsdk = None
@@ -84,6 +102,7 @@ class MavsdkAutopilot:
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
         from mavsdk.asyncio.plugins.action import ActionAsync
         from mavsdk.asyncio.plugins.offboard import OffboardAsync
+        from mavsdk.asyncio.plugins.param import ParamAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
@@ -102,6 +121,7 @@ class MavsdkAutopilot:
         self.action = ActionAsync(system)
         self.offboard = OffboardAsync(system)
         self.tel = TelemetryAsync(system)
+        self.param = ParamAsync(system)
         log.info("%s: connected to autopilot sysid %d", self.drone_id, self.sysid)
 
     async def start_telemetry(self, rate_hz: float = 50.0) -> None:
@@ -143,7 +163,14 @@ class MavsdkAutopilot:
                 put(battery_voltage_v=v.voltage_v)
 
         def position(v):
-            put(latitude_deg=v.latitude_deg, longitude_deg=v.longitude_deg, altitude_amsl_m=v.absolute_altitude_m)
+            put(latitude_deg=v.latitude_deg, longitude_deg=v.longitude_deg, altitude_amsl_m=v.absolute_altitude_m,
+                height_above_home_m=float(getattr(v, "relative_altitude_m", math.nan)))
+
+        def home(v):
+            alt = float(v.absolute_altitude_m)
+            if math.isfinite(alt) and math.isfinite(v.latitude_deg) and v.latitude_deg != 0.0:
+                put(home_altitude_amsl_m=alt)
+                self._update_vertical_offset()
 
         def gps(v):
             put(gps_fix_type=int(v.fix_type), gps_num_satellites=int(v.num_satellites))
@@ -154,13 +181,15 @@ class MavsdkAutopilot:
                 vertical_accuracy_m=vv if math.isfinite(vv) and 0 < vv < 90 else math.nan)
 
         def health(v):
-            put(health_ok=bool(v.is_global_position_ok and v.is_home_position_ok and v.is_armable))
+            put(health_ok=bool(v.is_global_position_ok and v.is_home_position_ok and v.is_armable),
+                global_position_ok=bool(v.is_global_position_ok), home_position_ok=bool(v.is_home_position_ok),
+                armable=bool(v.is_armable))
 
         subs = [
             (tel.subscribe_attitude_quaternion, q), (tel.subscribe_armed, armed), (tel.subscribe_in_air, in_air),
             (tel.subscribe_landed_state, landed), (tel.subscribe_flight_mode, mode), (tel.subscribe_battery, battery),
             (tel.subscribe_position, position), (tel.subscribe_gps_info, gps), (tel.subscribe_health, health),
-            (tel.subscribe_raw_gps, raw_gps),
+            (tel.subscribe_raw_gps, raw_gps), (tel.subscribe_home, home),
             (tel.subscribe_position_velocity_ned, self._on_posvel),
         ]
         for sub, cb in subs:
@@ -231,16 +260,23 @@ class MavsdkAutopilot:
         local = np.array([p.north_m, p.east_m, p.down_m])
         if self.local_to_world_ned_m is None:
             # The autopilot's local frame is about its EKF origin: find where that is in the world frame
-            # from the global position (same estimate), averaged over a few samples.
-            if T.gps_fix_type < 3 or not math.isfinite(T.latitude_deg) or T.latitude_deg == 0.0:
+            # from the global position (same estimate), averaged over a few samples; down from the height
+            # above home (the world's down is about the take-off point's ground)
+            if T.gps_fix_type < 3 or not math.isfinite(T.latitude_deg) or T.latitude_deg == 0.0 \
+                    or not T.home_position_ok or not math.isfinite(T.height_above_home_m):
                 return
             world = geodetic_to_ned(T.latitude_deg, T.longitude_deg, T.altitude_amsl_m, *self.origin)
-            self._offset_acc.append(world - local)
+            world[2] = T.altitude_amsl_m + local[2]  # the EKF origin's altitude (constant)
+            self._offset_acc.append(world - np.array([local[0], local[1], 0.0]))
             if len(self._offset_acc) < self._offset_samples:
                 return
-            self.local_to_world_ned_m = np.mean(self._offset_acc, axis=0)
-            log.info("%s: autopilot local origin at world NED %s m", self.drone_id,
-                     np.round(self.local_to_world_ned_m, 2).tolist())
+            acc = np.mean(self._offset_acc, axis=0)
+            self.ekf_origin_alt_m = float(acc[2])
+            self.local_to_world_ned_m = np.array([acc[0], acc[1], 0.0])
+            self._update_vertical_offset(force=True)
+            log.info("%s: autopilot local origin at world NED %s m (down about home, %.2f m AMSL; EKF origin %.2f m AMSL)",
+                     self.drone_id, np.round(self.local_to_world_ned_m, 2).tolist(), self._home_alt_m(),
+                     self.ekf_origin_alt_m)
         w = local + self.local_to_world_ned_m
         self.telemetry = T = dataclasses.replace(T, position_ned_m=(float(w[0]), float(w[1]), float(w[2])),
                                                  velocity_ned_m_s=(vel.north_m_s, vel.east_m_s, vel.down_m_s))
@@ -250,14 +286,82 @@ class MavsdkAutopilot:
         if self.on_state is not None:
             self.on_state(st)
 
+    def _home_alt_m(self) -> float:
+        T = self.telemetry
+        if math.isfinite(T.home_altitude_amsl_m):
+            return T.home_altitude_amsl_m
+        return T.altitude_amsl_m - T.height_above_home_m  # from Position.relative_altitude_m
+
+    def _update_vertical_offset(self, force: bool = False) -> None:
+        """World down = local down + (home altitude - EKF origin altitude): set once the origin is known, and
+        again when a new home is reported on the ground (PX4 re-sets home at arming)."""
+        if self.local_to_world_ned_m is None or self.ekf_origin_alt_m is None:
+            return
+        if self.telemetry.in_air and not force:
+            return
+        home = self._home_alt_m()
+        if not math.isfinite(home):
+            return
+        d = home - self.ekf_origin_alt_m
+        old = float(self.local_to_world_ned_m[2])
+        if force or abs(d - old) > 0.01:
+            self.local_to_world_ned_m = np.array([self.local_to_world_ned_m[0], self.local_to_world_ned_m[1], d])
+            if not force:
+                log.info("%s: new home at %.2f m AMSL: heights re-referenced (%+.2f m)", self.drone_id, home, d - old)
+
     async def wait_healthy(self, timeout_s: float) -> None:
+        """Wait for the pre-arm conditions (global position, home, armable, a world position). A vehicle on the
+        ground that reports position and home but is not armable while in OFFBOARD (PX4 after landing from
+        offboard) is put in HOLD first, once."""
         t_end = time.monotonic() + timeout_s
+        held = False
         while not (self.telemetry.health_ok and self.telemetry.position_ned_m is not None):
+            T = self.telemetry
+            if (not held and not T.armable and T.global_position_ok and T.home_position_ok and not T.in_air
+                    and T.flight_mode == "OFFBOARD"):
+                held = True
+                log.info("%s: on the ground in OFFBOARD and not armable (landed from offboard): setting HOLD first",
+                         self.drone_id)
+                await self._do("hold", self.action.hold())
             if time.monotonic() > t_end:
+                why = [n for n, ok in (("global position", T.global_position_ok), ("home position", T.home_position_ok),
+                                       ("armable", T.armable), ("world position", T.position_ned_m is not None)) if not ok]
                 raise AutopilotError(
-                    f"{self.drone_id}: autopilot not healthy after {timeout_s:.0f} s (needs GPS fix, home "
-                    f"position, armable); check the vehicle's preflight checks")
+                    f"{self.drone_id}: autopilot not ready after {timeout_s:.0f} s: no {', no '.join(why)} (mode "
+                    f"{T.flight_mode}); check the vehicle's preflight checks (GPS fix, home, arming checks)")
             await asyncio.sleep(0.1)
+
+    # --- parameters ----------------------------------------------------------------------------------
+    async def apply_params(self, params: dict[str, float | int], write: bool = True) -> dict[str, tuple]:
+        """Read each PX4 parameter of ``params`` (an ``int`` value: an INT32 parameter, else FLOAT) and, with
+        ``write``, set the ones that differ. Returns ``{name: (old, new)}`` of what changed (``write``) or
+        differs; logs every change, a missing parameter and a refusal (never raises: the agent flies on
+        without them and says so)."""
+        changed: dict[str, tuple] = {}
+        for name, want in params.items():
+            is_int = isinstance(want, int)
+            try:
+                old = await (self.param.get_param_int(name) if is_int else self.param.get_param_float(name))
+            except Exception as e:
+                log.warning("%s: autopilot parameter %s not readable (%s): cannot enforce %s=%s", self.drone_id, name,
+                            e, name, want)
+                continue
+            same = old == want if is_int else math.isclose(old, want, rel_tol=1e-5, abs_tol=1e-4)
+            if same:
+                continue
+            if not write:
+                log.warning("%s: autopilot parameter %s=%s, the agent expects %s (autopilot.set_params=false: left)",
+                            self.drone_id, name, old, want)
+                changed[name] = (old, want)
+                continue
+            try:
+                await (self.param.set_param_int(name, want) if is_int else self.param.set_param_float(name, float(want)))
+            except Exception as e:
+                log.warning("%s: setting autopilot parameter %s=%s failed: %s", self.drone_id, name, want, e)
+                continue
+            log.info("%s: autopilot parameter %s: %s -> %s", self.drone_id, name, old, want)
+            changed[name] = (old, want)
+        return changed
 
     # --- actions -------------------------------------------------------------------------------------
     async def arm(self) -> None:
@@ -267,20 +371,24 @@ class MavsdkAutopilot:
         await self._do("disarm", self.action.disarm())
 
     async def takeoff(self, altitude_m: float) -> None:
+        """Take off to ``altitude_m`` above home; returns once the vehicle reports its take-off mode (or already
+        holds in the air: a short climb may end before PX4's next heartbeat)."""
         await self._do("set_takeoff_altitude", self.action.set_takeoff_altitude(float(altitude_m)))
-        await self._do("takeoff", self.action.takeoff())
+        await self._confirm_mode("takeoff", self.action.takeoff, lambda T: T.flight_mode == "TAKEOFF" or (
+            T.flight_mode == "HOLD" and T.in_air))
 
     async def land(self) -> None:
         await self._leave_offboard()
-        await self._do("land", self.action.land())
+        await self._confirm_mode("land", self.action.land, lambda T: T.flight_mode == "LAND" or not T.in_air)
 
     async def return_to_launch(self) -> None:
         await self._leave_offboard()
-        await self._do("return_to_launch", self.action.return_to_launch())
+        await self._confirm_mode("return", self.action.return_to_launch,
+                                 lambda T: T.flight_mode in ("RETURN_TO_LAUNCH", "LAND") or not T.in_air)
 
     async def hold(self) -> None:
         await self._leave_offboard()
-        await self._do("hold", self.action.hold())
+        await self._confirm_mode("hold", self.action.hold, lambda T: T.flight_mode == "HOLD")
 
     async def set_setpoint(self, sp: Setpoint) -> None:
         """Stream one position + velocity and acceleration feed-forward + yaw setpoint (world NED)."""
@@ -316,10 +424,36 @@ class MavsdkAutopilot:
         return True
 
     async def start_offboard(self) -> None:
-        """Switch to offboard; a setpoint must have been streamed first (PX4 requirement)."""
-        await self._do("offboard start", self.offboard.start())
+        """Switch to offboard (a setpoint must have been streamed first: PX4 requirement) and wait until the
+        vehicle reports OFFBOARD."""
+        await self._confirm_mode("offboard start", self.offboard.start, lambda T: T.flight_mode == "OFFBOARD")
         self.offboard_active = True
         self.offboard_since_s = time.monotonic()
+
+    #: seconds :meth:`_confirm_mode` waits for the reported mode (per attempt; two attempts)
+    mode_confirm_timeout_s = 3.0
+
+    async def _confirm_mode(self, what: str, command, reached) -> None:
+        """Send ``command()`` (a coroutine function) and wait until ``reached(telemetry)``; send it once more if
+        the vehicle does not report it within ``mode_confirm_timeout_s``; raise :class:`AutopilotError` with the
+        mode it stayed in otherwise. An acknowledgement alone is not trusted: PX4 acknowledges at once and shows
+        its new mode up to 1 s later (heartbeat), or never when another mode overrides it (e.g. the HOLD that ends
+        PX4's take-off)."""
+        for attempt in (1, 2):
+            await self._do(what, command())
+            t_end = time.monotonic() + self.mode_confirm_timeout_s
+            while time.monotonic() < t_end:
+                if reached(self.telemetry):
+                    if attempt > 1:
+                        log.info("%s: %s confirmed on the second attempt", self.drone_id, what)
+                    return
+                await asyncio.sleep(0.05)
+            log.warning("%s: %s acknowledged but the vehicle still reports %s after %.1f s%s", self.drone_id, what,
+                        self.telemetry.flight_mode, self.mode_confirm_timeout_s,
+                        ": sending it again" if attempt == 1 else "")
+        raise AutopilotError(f"{self.drone_id}: {what} acknowledged but the vehicle stayed in "
+                             f"{self.telemetry.flight_mode} (not confirmed after 2 attempts of "
+                             f"{self.mode_confirm_timeout_s:.1f} s)")
 
     async def _leave_offboard(self) -> None:
         self.offboard_active = False

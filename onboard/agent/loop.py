@@ -46,6 +46,7 @@ health warning.
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 import math
 import time
@@ -128,11 +129,14 @@ class Agent:
         self._last_state_pub_s = 0.0
         self._cpu = (time.monotonic(), time.process_time())
         self._gimbal_sent: tuple[float, float] | None = None
+        #: monotonic times of the setpoints sent in the last few seconds (stall detection)
+        self._sp_times: collections.deque[float] = collections.deque(maxlen=400)
         self._gimbal_task: asyncio.Task | None = None
         self.gimbal_watch = GimbalWatch()
         self.supervisor = VehicleSupervisor(cfg, self.mission, autopilot, self.teammates, failsafe=self._failsafe,
                                             stop_setpoints=self._stop_setpoints, resume_offboard=self._resume_offboard,
-                                            setpoints_flowing=self._setpoints_flowing, warn=self.warnings.append)
+                                            setpoints_flowing=self._setpoints_flowing, warn=self.warnings.append,
+                                            setpoint_gap_s=self._setpoint_gap_s)
         #: track mode's parts (None in orbit mode)
         self.tracking: TrackingCapture | None = None
         self.failsafes: FormationFailsafes | None = None
@@ -295,7 +299,9 @@ class Agent:
                     if not ap.telemetry.armed:
                         await ap.arm()
                     self.supervisor.takeoff_alt_m = float(params.get("altitude_m", self.cfg.flight.takeoff_altitude_m))
+                    self.supervisor.takeoff_confirmed = False
                     await ap.takeoff(self.supervisor.takeoff_alt_m)
+                    self.supervisor.takeoff_confirmed = True
                 elif action == Action.START_ORBIT:
                     await self._start_orbit()
                 elif action == Action.PAUSE:
@@ -327,6 +333,14 @@ class Agent:
         st = self.state
         if plan is None or st is None:
             raise RuntimeError("no plan or no vehicle state yet")
+        # a start during the take-off: PX4 ends its take-off with HOLD, which would override an offboard switch
+        # made at that moment: wait until the take-off is over
+        t_end = time.monotonic() + 60.0
+        while self.mission.state == State.ORBIT and not self.autopilot.offboard_active and (
+                self.autopilot.telemetry.flight_mode == "TAKEOFF" or self.autopilot.telemetry.landed_state == "taking_off"):
+            if time.monotonic() > t_end:
+                raise RuntimeError("the autopilot is still in its take-off after 60 s")
+            await asyncio.sleep(0.1)
         self.source = await self.source_for(plan)
         if not self.autopilot.offboard_active:
             # PX4 refuses offboard without a setpoint stream: let the control loop stream first.
@@ -359,6 +373,7 @@ class Agent:
                     await self.autopilot.set_setpoint(sp)
                     self.last_setpoint = sp
                     self.rates["setpoint"].tick()
+                    self._sp_times.append(time.monotonic())
                 except Exception as e:
                     log.warning("%s: setpoint failed: %s", self.id, e)
                 else:
@@ -422,11 +437,28 @@ class Agent:
     def _stop_setpoints(self) -> None:
         self.source = None
 
+    def _setpoint_gap_s(self, window_s: float = 5.0) -> float:
+        """The longest gap (s) between two setpoints sent (or since the last one) in the last ``window_s``."""
+        now = time.monotonic()
+        ts = [t for t in self._sp_times if now - t <= window_s]
+        if not ts:
+            return window_s if self._sp_times else 0.0
+        gaps = [b - a for a, b in zip(ts, ts[1:])] + [now - ts[-1]]
+        if len(ts) < len(self._sp_times):  # the gap that ended at the window's first setpoint
+            older = [t for t in self._sp_times if now - t > window_s]
+            gaps.append(ts[0] - older[-1])
+        return max(gaps)
+
     def _resume_offboard(self) -> None:
         ap = self.autopilot
 
         async def resume():
             try:
+                # fly back from wherever the autopilot took the vehicle (its Return climbs): a fresh source
+                # approaches the slot from the current position instead of jumping to it
+                if (self.formation is None and self.mission.state == State.ORBIT and self.mission.plan is not None
+                        and self.source is not None):
+                    self.source = await self.source_for(self.mission.plan)
                 await ap.start_offboard()
             except Exception as e:
                 log.error("%s: resuming offboard failed: %s", self.id, e)
@@ -486,6 +518,8 @@ class Agent:
             log.warning("%s: no liveliness token: %s", self.id, e)
         await self.autopilot.connect(cfg.connection, cfg.connect_timeout_s)
         await self.autopilot.start_telemetry(cfg.rates.telemetry_hz)
+        self.autopilot.mode_confirm_timeout_s = cfg.autopilot.mode_confirm_timeout_s
+        await self.autopilot.apply_params(cfg.autopilot.params(cfg.flight.takeoff_altitude_m), write=cfg.autopilot.set_params)
         self._tasks.append(asyncio.create_task(self.control_loop(), name="control"))
         self._tasks.append(asyncio.create_task(self.supervisor_loop(), name="supervisor"))
         # a plan published before we started: ask for the latest one

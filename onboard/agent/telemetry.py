@@ -3,7 +3,8 @@
 :class:`Telemetry` is the latest of every telemetry stream the autopilot adapter
 (:class:`onboard.agent.autopilot.MavsdkAutopilot`) subscribes to, as one frozen record: the adapter replaces it
 (``dataclasses.replace``) on every sample, so a reader always holds a consistent snapshot. Positions are in the
-flight's world NED frame (the autopilot's local frame moved by its estimated origin), velocities in NED, the
+flight's world NED frame (north / east about the configured origin, down about the autopilot's home: heights
+are above the take-off point; the autopilot's local frame moved by its estimated offset), velocities in NED, the
 attitude is the body-to-world quaternion (w, x, y, z). :meth:`Telemetry.vehicle_state` turns it into the
 :class:`shared_msgs.VehicleState` the agent records and publishes.
 """
@@ -49,8 +50,16 @@ class Telemetry:
     #: the receiver's position uncertainty (1 sigma, RAW_GPS); NaN when not reported
     horizontal_accuracy_m: float = _NAN
     vertical_accuracy_m: float = _NAN
+    #: height above the autopilot's home (m; MAVSDK ``Position.relative_altitude_m``), NaN until reported
+    height_above_home_m: float = _NAN
+    #: the autopilot's home altitude (AMSL m; MAVSDK ``Telemetry.home``), NaN until reported
+    home_altitude_amsl_m: float = _NAN
     #: global position, home position and armable all OK
     health_ok: bool = False
+    #: the parts of ``health_ok`` (MAVSDK ``Health``)
+    global_position_ok: bool = False
+    home_position_ok: bool = False
+    armable: bool = False
     #: the camera gimbal (MAVSDK's gimbal plugin; 0 / NaN until one is discovered and reports): its MAVSDK id,
     #: roll and pitch relative to the horizon, yaw relative to the heading and to north (rad), report time (ns)
     gimbal_id: int = 0
@@ -62,7 +71,8 @@ class Telemetry:
 
     @property
     def altitude_m(self) -> float:
-        """Height above the world origin (m, = -down); 0 before the position is known."""
+        """Height above the ground the drone took off from (m, = -down of the world position, whose down is
+        about the autopilot's home); 0 before the position is known."""
         return -self.position_ned_m[2] if self.position_ned_m is not None else 0.0
 
     def vehicle_state(self, drone_id: str, t_measurement_ns: int, seq: int) -> VehicleState:

@@ -206,7 +206,7 @@ def test_vehicle_supervisor_alone():
     from onboard.mission import Mission, State
 
     calls: list = []
-    flowing = [True]
+    flowing, gap = [True], [0.05]
     ap = FakeAutopilot()
     ap.telemetry = Telemetry(armed=True, in_air=True, flight_mode="OFFBOARD", landed_state="in_air",
                              position_ned_m=(0.0, 0.0, -5.0), health_ok=True, battery_remaining_frac=0.9)
@@ -217,14 +217,48 @@ def test_vehicle_supervisor_alone():
     sup = VehicleSupervisor(AgentConfig(drone_id="drone_1"), mission, ap, tm,
                             failsafe=lambda r, a: calls.append(("failsafe", a, r)),
                             stop_setpoints=lambda: calls.append(("stop",)), resume_offboard=lambda: calls.append(("resume",)),
-                            setpoints_flowing=lambda: flowing[0], warn=lambda w: calls.append(("warn", w)))
+                            setpoints_flowing=lambda: flowing[0], warn=lambda w: calls.append(("warn", w)),
+                            setpoint_gap_s=lambda: gap[0])
     sup.on_gcs_heartbeat()
     sup.check()
     assert calls == [] and sup.gcs_seen
-    # PX4's stream-loss HOLD while the setpoints flow: switched back
+    # HOLD while our setpoints flowed without a gap: not our stall (a pilot, the autopilot's own reason): followed
     ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="HOLD")
     sup.check()
-    assert calls[-1] == ("resume",) and ("warn", "autopilot left offboard for HOLD, resumed") in calls
+    assert calls[-1] == ("stop",) and mission.state == State.PAUSED and not ap.offboard_active
+    assert sup.takeovers[-1]["mode"] == "HOLD" and not sup.takeovers[-1]["stalled"]
+    # the autopilot's offboard-loss Return after a 2.5 s stall of ours: reported, then undone once the setpoints flow
+    mission.state, ap.offboard_active, gap[0], flowing[0] = State.ORBIT, True, 2.5, False
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="RETURN_TO_LAUNCH")
+    calls.clear()
+    sup.check()
+    assert calls == [] and mission.state == State.ORBIT  # waiting up to autopilot.resume_wait_s for the stream
+    flowing[0] = True
+    sup.check()
+    assert calls[-1] == ("resume",) and mission.state == State.ORBIT
+    assert "offboard-loss failsafe after a setpoint stall" in calls[0][1] and "switching back" in calls[0][1]
+    # PX4 went back to OFFBOARD by itself before we did: reported
+    calls.clear()
+    ap.offboard_since_s, flowing[0] = 0.0, False
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="HOLD")
+    sup.check()
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="OFFBOARD")
+    sup.check()
+    assert [c for c in calls if c[0] == "warn"] == [
+        ("warn", "autopilot took over in HOLD (offboard-loss failsafe after a setpoint stall): autopilot back in "
+                 f"OFFBOARD by itself after {0.0:.1f} s")] and mission.state == State.ORBIT
+    # policy "follow": the stall's Return is followed
+    follow_cfg = AgentConfig(drone_id="drone_1")
+    follow_cfg.autopilot.on_failsafe = "follow"
+    sup.cfg = follow_cfg
+    flowing[0] = True
+    ap.offboard_since_s = 0.0
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="RETURN_TO_LAUNCH")
+    sup.check()
+    assert mission.state == State.RETURNING and calls[-1] == ("stop",)
+    sup.cfg = AgentConfig(drone_id="drone_1")
+    mission.state, ap.offboard_active = State.ORBIT, True
+    ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="OFFBOARD")
     # another drone too close: the configured separation action (hold)
     tm.note("drone_2", _state("drone_2", (1.0, 0.0, -5.0)), time.monotonic(), time.time())
     ap.telemetry = dataclasses.replace(ap.telemetry, flight_mode="OFFBOARD")

@@ -122,7 +122,9 @@ def test_offboard_lost_resume_follow_or_pause():
     assert m.offboard_lost("POSCTL", may_resume=True).state == State.PAUSED  # a pilot took over
     assert m.command("start").action == Action.START_ORBIT  # the operator resumes
     assert orbiting().offboard_lost("LAND", True).state == State.LANDING
-    assert orbiting().offboard_lost("RETURN_TO_LAUNCH", True).state == State.RETURNING
+    assert orbiting().offboard_lost("RETURN_TO_LAUNCH", True).action == Action.RESUME_OFFBOARD  # our stall's RTL
+    assert orbiting().offboard_lost("RETURN_TO_LAUNCH", False).state == State.RETURNING
+    assert orbiting().offboard_lost("LAND", False).state == State.LANDING
     idle = Mission()
     assert idle.offboard_lost("HOLD", True).action == Action.NONE
 
