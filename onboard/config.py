@@ -64,6 +64,10 @@ class FlightConfig:
     #: carrot speed towards the orbit slot (horizontal / vertical)
     approach_speed_m_s: float = 3.0
     approach_climb_m_s: float = 1.5
+    #: orbit trim: the integral gain (1/s) of the tracking error in the orbit's rotating frame added to the
+    #: streamed position once on the slot (0 = off; see :class:`onboard.orbit.OrbitController`), and its bound (m)
+    orbit_trim_gain_per_s: float = 0.3
+    orbit_trim_max_m: float = 1.5
     #: how long to wait for the autopilot's health checks before refusing to arm
     health_timeout_s: float = 30.0
 

@@ -6,13 +6,17 @@ calls ``on_state(VehicleState)`` for each position/velocity sample (the autopilo
 recorder keeps), and turns the agent's intents into MAVSDK calls
 (arm, takeoff, offboard setpoints, land, return, hold, gimbal angles). No flight logic lives here.
 
-Frames: the autopilot's local NED frame is about its EKF origin. The adapter finds that origin in the flight's
-world frame from the same estimate's global position: north / east about the configured geodetic ``origin``
-(once, averaged over the first samples), down about the autopilot's *home* (the home's altitude minus the EKF
-origin's, both AMSL; updated whenever the autopilot reports a new home while on the ground: PX4 sets home where
-it boots and again where it arms), so every height is above the take-off point, whatever the ground's altitude
-above mean sea level (PX4 SITL's SIH ground is 489.4 m, a configured origin 488 m: 1.4 m of error otherwise),
-and a barometric drift between boot and arming is taken out at each arming.
+Frames: the autopilot's local NED frame is about its EKF origin. The adapter places that origin in the flight's
+world frame: north / east about the configured geodetic ``origin`` from the same estimate's global position
+(once, averaged over the first samples); down about the *ground the vehicle stands on*: the estimate's local down
+is averaged while the vehicle reports itself on the ground and still, and that level is height 0 (re-measured
+before every take-off, frozen in the air). Every height is then above the take-off point, whatever the ground's
+altitude above mean sea level (PX4 SITL's SIH ground is 489.4 m, a configured origin 488 m: 1.4 m of error
+otherwise) or a drift of the estimate between boot and take-off. MAVSDK's home and ``relative_altitude_m`` are
+not used for this: measured on PX4 SITL, the home altitude MAVSDK reported jumped by up to 1.3 m in flight and
+``relative_altitude_m`` disagreed with ``absolute_altitude_m`` minus home by up to 1.6 m, while the local down
+stayed within 0.2 m of SIH's truth. An agent that starts in the air (a restart) takes the EKF origin's level
+(PX4: where it booted, on the ground) until the vehicle next stands on the ground.
 
 Modes: an acknowledged mode command is not trusted; :meth:`MavsdkAutopilot._confirm_mode` waits until the
 vehicle *reports* the mode (PX4 reports it in its 1 Hz heartbeat), sends the command once more if it does not,
@@ -73,8 +77,8 @@ class MavsdkAutopilot:
         #: world = local + offset (NED metres); estimated from global vs local position on the ground
         self.local_to_world_ned_m: np.ndarray | None = None
         self._offset_acc: list[np.ndarray] = []
-        #: the autopilot's EKF origin altitude (AMSL m) = global altitude + local down, from the first samples
-        self.ekf_origin_alt_m: float | None = None
+        #: the estimate's local down (m) of the ground the vehicle stands on (mean while on the ground and still)
+        self.ground_local_down_m: float | None = None
         self._offset_samples = int(offset_samples)
         self.on_state = on_state
         self._mavsdk = None
@@ -166,12 +170,6 @@ class MavsdkAutopilot:
             put(latitude_deg=v.latitude_deg, longitude_deg=v.longitude_deg, altitude_amsl_m=v.absolute_altitude_m,
                 height_above_home_m=float(getattr(v, "relative_altitude_m", math.nan)))
 
-        def home(v):
-            alt = float(v.absolute_altitude_m)
-            if math.isfinite(alt) and math.isfinite(v.latitude_deg) and v.latitude_deg != 0.0:
-                put(home_altitude_amsl_m=alt)
-                self._update_vertical_offset()
-
         def gps(v):
             put(gps_fix_type=int(v.fix_type), gps_num_satellites=int(v.num_satellites))
 
@@ -189,7 +187,7 @@ class MavsdkAutopilot:
             (tel.subscribe_attitude_quaternion, q), (tel.subscribe_armed, armed), (tel.subscribe_in_air, in_air),
             (tel.subscribe_landed_state, landed), (tel.subscribe_flight_mode, mode), (tel.subscribe_battery, battery),
             (tel.subscribe_position, position), (tel.subscribe_gps_info, gps), (tel.subscribe_health, health),
-            (tel.subscribe_raw_gps, raw_gps), (tel.subscribe_home, home),
+            (tel.subscribe_raw_gps, raw_gps),
             (tel.subscribe_position_velocity_ned, self._on_posvel),
         ]
         for sub, cb in subs:
@@ -258,25 +256,25 @@ class MavsdkAutopilot:
             return
         T = self.telemetry
         local = np.array([p.north_m, p.east_m, p.down_m])
+        if T.landed_state == "on_ground" and not T.in_air and abs(vel.down_m_s) < 0.2:
+            g = self.ground_local_down_m
+            self.ground_local_down_m = float(local[2]) if g is None else g + 0.05 * (float(local[2]) - g)
         if self.local_to_world_ned_m is None:
             # The autopilot's local frame is about its EKF origin: find where that is in the world frame
-            # from the global position (same estimate), averaged over a few samples; down from the height
-            # above home (the world's down is about the take-off point's ground)
-            if T.gps_fix_type < 3 or not math.isfinite(T.latitude_deg) or T.latitude_deg == 0.0 \
-                    or not T.home_position_ok or not math.isfinite(T.height_above_home_m):
+            # from the global position (same estimate), averaged over a few samples
+            if T.gps_fix_type < 3 or not math.isfinite(T.latitude_deg) or T.latitude_deg == 0.0:
                 return
             world = geodetic_to_ned(T.latitude_deg, T.longitude_deg, T.altitude_amsl_m, *self.origin)
-            world[2] = T.altitude_amsl_m + local[2]  # the EKF origin's altitude (constant)
-            self._offset_acc.append(world - np.array([local[0], local[1], 0.0]))
+            self._offset_acc.append(world[:2] - local[:2])
             if len(self._offset_acc) < self._offset_samples:
                 return
-            acc = np.mean(self._offset_acc, axis=0)
-            self.ekf_origin_alt_m = float(acc[2])
-            self.local_to_world_ned_m = np.array([acc[0], acc[1], 0.0])
-            self._update_vertical_offset(force=True)
-            log.info("%s: autopilot local origin at world NED %s m (down about home, %.2f m AMSL; EKF origin %.2f m AMSL)",
-                     self.drone_id, np.round(self.local_to_world_ned_m, 2).tolist(), self._home_alt_m(),
-                     self.ekf_origin_alt_m)
+            ne = np.mean(self._offset_acc, axis=0)
+            self.local_to_world_ned_m = np.array([ne[0], ne[1], 0.0])
+            log.info("%s: autopilot local origin at world north/east %s m; heights above the ground %s", self.drone_id,
+                     np.round(ne, 2).tolist(), "it stands on" if self.ground_local_down_m is not None else
+                     "of the EKF origin until the vehicle stands on the ground (started in the air)")
+        if self.ground_local_down_m is not None and not T.in_air:
+            self.local_to_world_ned_m[2] = -self.ground_local_down_m
         w = local + self.local_to_world_ned_m
         self.telemetry = T = dataclasses.replace(T, position_ned_m=(float(w[0]), float(w[1]), float(w[2])),
                                                  velocity_ned_m_s=(vel.north_m_s, vel.east_m_s, vel.down_m_s))
@@ -285,29 +283,6 @@ class MavsdkAutopilot:
         self.last_state = st
         if self.on_state is not None:
             self.on_state(st)
-
-    def _home_alt_m(self) -> float:
-        T = self.telemetry
-        if math.isfinite(T.home_altitude_amsl_m):
-            return T.home_altitude_amsl_m
-        return T.altitude_amsl_m - T.height_above_home_m  # from Position.relative_altitude_m
-
-    def _update_vertical_offset(self, force: bool = False) -> None:
-        """World down = local down + (home altitude - EKF origin altitude): set once the origin is known, and
-        again when a new home is reported on the ground (PX4 re-sets home at arming)."""
-        if self.local_to_world_ned_m is None or self.ekf_origin_alt_m is None:
-            return
-        if self.telemetry.in_air and not force:
-            return
-        home = self._home_alt_m()
-        if not math.isfinite(home):
-            return
-        d = home - self.ekf_origin_alt_m
-        old = float(self.local_to_world_ned_m[2])
-        if force or abs(d - old) > 0.01:
-            self.local_to_world_ned_m = np.array([self.local_to_world_ned_m[0], self.local_to_world_ned_m[1], d])
-            if not force:
-                log.info("%s: new home at %.2f m AMSL: heights re-referenced (%+.2f m)", self.drone_id, home, d - old)
 
     async def wait_healthy(self, timeout_s: float) -> None:
         """Wait for the pre-arm conditions (global position, home, armable, a world position). A vehicle on the
@@ -330,6 +305,18 @@ class MavsdkAutopilot:
                     f"{self.drone_id}: autopilot not ready after {timeout_s:.0f} s: no {', no '.join(why)} (mode "
                     f"{T.flight_mode}); check the vehicle's preflight checks (GPS fix, home, arming checks)")
             await asyncio.sleep(0.1)
+
+    def landed_in_offboard(self) -> bool:
+        """On the ground, disarmed, and still reporting OFFBOARD (PX4 after landing from offboard: not armable
+        until another mode is set)."""
+        T = self.telemetry
+        return (not T.in_air and not T.armed and T.flight_mode == "OFFBOARD" and T.landed_state == "on_ground"
+                and not self.offboard_active)
+
+    async def release_offboard(self) -> None:
+        """Put a vehicle that :meth:`landed_in_offboard` in HOLD, so that it reports armable again."""
+        log.info("%s: landed in OFFBOARD (PX4 is then not armable): setting HOLD", self.drone_id)
+        await self._do("hold", self.action.hold())
 
     # --- parameters ----------------------------------------------------------------------------------
     async def apply_params(self, params: dict[str, float | int], write: bool = True) -> dict[str, tuple]:

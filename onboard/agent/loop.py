@@ -129,6 +129,7 @@ class Agent:
         self._last_state_pub_s = 0.0
         self._cpu = (time.monotonic(), time.process_time())
         self._gimbal_sent: tuple[float, float] | None = None
+        self._t_release_s = -math.inf
         #: monotonic times of the setpoints sent in the last few seconds (stall detection)
         self._sp_times: collections.deque[float] = collections.deque(maxlen=400)
         self._gimbal_task: asyncio.Task | None = None
@@ -326,7 +327,9 @@ class Agent:
         MPC ("track"; its solver is built off the event loop)."""
         if self.formation is not None:
             return await asyncio.to_thread(self.formation.build_source, plan)
-        return OrbitController(plan, self.id, self.cfg.flight.approach_speed_m_s, self.cfg.flight.approach_climb_m_s)
+        fl = self.cfg.flight
+        return OrbitController(plan, self.id, fl.approach_speed_m_s, fl.approach_climb_m_s,
+                               trim_gain_per_s=fl.orbit_trim_gain_per_s, trim_max_m=fl.orbit_trim_max_m)
 
     async def _start_orbit(self) -> None:
         plan = self.mission.plan
@@ -420,11 +423,28 @@ class Agent:
             self.supervise_once()
             now = time.monotonic()
             self._check_gimbal(now)
+            self._release_offboard(now)
             if self.tracking is not None:
                 self.tracking.publish_target(now)
             if now - t_health >= 1.0 / self.cfg.rates.health_hz:
                 t_health = now
                 self.outbox.publish(keys.HEALTH, self.health())
+
+    def _release_offboard(self, now: float) -> None:
+        """A vehicle landed (or found at connect) disarmed in OFFBOARD is put in HOLD (every 5 s at most) so that it
+        reports armable again: the operator's pre-flight checks and the next take-off need it."""
+        ap = self.autopilot
+        if not getattr(ap, "landed_in_offboard", lambda: False)() or now - self._t_release_s < 5.0:
+            return
+        self._t_release_s = now
+
+        async def release():
+            try:
+                await ap.release_offboard()
+            except Exception as e:
+                log.warning("%s: %s", self.id, e)
+
+        self._spawn(release(), "release_offboard")
 
     def supervise_once(self) -> None:
         """Vehicle events into the mission, offboard loss, the ``safety`` failsafes (:class:`VehicleSupervisor`)."""

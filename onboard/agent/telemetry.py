@@ -3,8 +3,8 @@
 :class:`Telemetry` is the latest of every telemetry stream the autopilot adapter
 (:class:`onboard.agent.autopilot.MavsdkAutopilot`) subscribes to, as one frozen record: the adapter replaces it
 (``dataclasses.replace``) on every sample, so a reader always holds a consistent snapshot. Positions are in the
-flight's world NED frame (north / east about the configured origin, down about the autopilot's home: heights
-are above the take-off point; the autopilot's local frame moved by its estimated offset), velocities in NED, the
+flight's world NED frame (north / east about the configured origin, down about the ground the vehicle took off
+from: heights are above the take-off point; the autopilot's local frame moved by its estimated offset), velocities in NED, the
 attitude is the body-to-world quaternion (w, x, y, z). :meth:`Telemetry.vehicle_state` turns it into the
 :class:`shared_msgs.VehicleState` the agent records and publishes.
 """
@@ -50,10 +50,9 @@ class Telemetry:
     #: the receiver's position uncertainty (1 sigma, RAW_GPS); NaN when not reported
     horizontal_accuracy_m: float = _NAN
     vertical_accuracy_m: float = _NAN
-    #: height above the autopilot's home (m; MAVSDK ``Position.relative_altitude_m``), NaN until reported
+    #: height above the autopilot's home as MAVSDK reports it (``Position.relative_altitude_m``; for information:
+    #: world heights come from the local estimate, see :mod:`onboard.agent.autopilot`), NaN until reported
     height_above_home_m: float = _NAN
-    #: the autopilot's home altitude (AMSL m; MAVSDK ``Telemetry.home``), NaN until reported
-    home_altitude_amsl_m: float = _NAN
     #: global position, home position and armable all OK
     health_ok: bool = False
     #: the parts of ``health_ok`` (MAVSDK ``Health``)

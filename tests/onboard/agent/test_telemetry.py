@@ -68,7 +68,7 @@ def test_adapter_keeps_the_record_and_reports_world_states():
         ap = MavsdkAutopilot("drone_1", on_state=states.append, origin=origin, offset_samples=2)
         lat, lon, alt = 47.397842, 8.545694, 489.0  # ~11 m north, ~7.5 m east, 1 m up of the origin
         world = geodetic_to_ned(lat, lon, alt, *origin)
-        world[2] = -1.4  # heights are above home (here 487.6 m AMSL), not above the origin's 488 m
+        world[2] = 0.0  # heights are above the ground the vehicle stands on, not above the origin's 488 m
         ned = lambda n, e, d: SimpleNamespace(north_m=n, east_m=e, down_m=d)
         posvel = [SimpleNamespace(position=ned(1.0, 2.0, -0.5), velocity=SimpleNamespace(north_m_s=0.1, east_m_s=0.0, down_m_s=0.0))
                   for _ in range(3)]
@@ -84,7 +84,6 @@ def test_adapter_keeps_the_record_and_reports_world_states():
             subscribe_health=_Stream("health", [S(is_global_position_ok=True, is_home_position_ok=True, is_armable=True)]),
             subscribe_raw_gps=_Stream("raw_gps", [S(horizontal_uncertainty_m=0.4, vertical_uncertainty_m=120.0)]),
             subscribe_position_velocity_ned=_Stream("posvel", []),
-            subscribe_home=_Stream("home", [S(latitude_deg=lat, longitude_deg=lon, absolute_altitude_m=487.6)]),
         )
 
         async def rate(_hz):
@@ -103,21 +102,20 @@ def test_adapter_keeps_the_record_and_reports_world_states():
         assert (T.gps_fix_type, T.gps_num_satellites, T.health_ok) == (3, 11, True)
         assert T.horizontal_accuracy_m == 0.4 and math.isnan(T.vertical_accuracy_m)  # > 90 m: not a report
         assert T.position_ned_m is None
+        ap.telemetry = dataclasses.replace(ap.telemetry, landed_state="on_ground", in_air=False)
         for v in posvel:  # two samples place the local origin; from the second on they are reported
             ap._on_posvel(v)
         offset = world - np.array([1.0, 2.0, -0.5])
         np.testing.assert_allclose(ap.local_to_world_ned_m, offset)
         np.testing.assert_allclose(ap.telemetry.position_ned_m, world)
-        assert ap.ekf_origin_alt_m == pytest.approx(488.5)  # global altitude + local down
-        # PX4 re-sets home at arming (on the ground): heights follow the new home
-        ap.telemetry = dataclasses.replace(ap.telemetry, home_altitude_amsl_m=487.9, in_air=False)
-        ap._update_vertical_offset()
-        assert ap.local_to_world_ned_m[2] == pytest.approx(487.9 - 488.5)
-        ap.telemetry = dataclasses.replace(ap.telemetry, home_altitude_amsl_m=480.0, in_air=True)
-        ap._update_vertical_offset()  # not in the air
-        assert ap.local_to_world_ned_m[2] == pytest.approx(487.9 - 488.5)
+        assert ap.ground_local_down_m == pytest.approx(-0.5)
+        # in the air: the ground level is frozen, the height is above it
+        ap.telemetry = dataclasses.replace(ap.telemetry, landed_state="in_air", in_air=True)
+        ap._on_posvel(SimpleNamespace(position=ned(1.0, 2.0, -3.5), velocity=posvel[0].velocity))
+        assert ap.telemetry.position_ned_m[2] == pytest.approx(-3.0) and ap.ground_local_down_m == pytest.approx(-0.5)
+        ap._on_posvel(posvel[0])
         assert ap.telemetry.velocity_ned_m_s == (0.1, 0.0, 0.0)
-        assert len(states) == 2 and states[-1] is ap.last_state and states[-1].header.seq == 2
+        assert len(states) == 4 and states[-1] is ap.last_state and states[-1].header.seq == 4
         np.testing.assert_allclose(states[-1].position_ned_m, world)
         assert states[-1].position_cov_m2 == (1.0, 1.0, 1.0)  # no vertical accuracy: the default
         assert states[-1].battery_remaining_frac == 0.64 and states[-1].flight_mode == "HOLD"
