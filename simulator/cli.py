@@ -241,12 +241,10 @@ def run_px4(cfg: SimConfig, px4_dir: str | None = None, first_instance: int = 0,
                 raise SkycapError(f"PX4 SITL instance(s) {dead} exited; see their consoles in {workdir}")
             if time.monotonic() >= t_status:
                 t_status += status_every_s
-                if publisher is not None:
-                    for k, s in enumerate(publisher.reader.latest()):
-                        if s is not None:
-                            log.info("drone_%d: truth NED %s m (%d SIH samples); %d truths published", k + 1,
-                                     [round(float(v), 2) for v in s.position_ned_m], publisher.reader.counts[k],
-                                     publisher.published)
+                msg = publisher.message(time.time_ns()) if publisher is not None else None
+                for k, v in enumerate(msg.vehicles if msg is not None else []):
+                    log.info("%s: truth NED %s m (%d SIH samples); %d truths published", v.drone_id,
+                             [round(x, 2) for x in v.position_ned_m], publisher.reader.counts[k], publisher.published)
             stop.wait(0.2)
     finally:
         if cancel is not None:
