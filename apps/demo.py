@@ -290,6 +290,14 @@ def _look_down_deg(cfg: DemoConfig) -> float:
     return -math.degrees(math.atan2(cfg.orbit.altitude_m + cfg.orbit.center_ned_m[2], cfg.orbit.radius_m))
 
 
+def _slots_where_they_are(slots: dict[str, float], positions_ned_m: dict, center_ned_m) -> dict[str, float]:
+    """``slots`` (phase offsets, rad) all turned by one angle -- the circular mean of each drone's bearing from
+    the centre minus its slot -- so that the spacing is kept and each slot lies nearest its drone."""
+    diffs = [math.atan2(p[1] - center_ned_m[1], p[0] - center_ned_m[0]) - slots[d] for d, p in positions_ned_m.items()]
+    turn = math.atan2(sum(math.sin(a) for a in diffs), sum(math.cos(a) for a in diffs))
+    return {d: math.remainder(v + turn, 2 * math.pi) for d, v in slots.items()}
+
+
 def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[float]]:
     c = cfg.orbit.center_ned_m
     return [[round(c[0] + cfg.orbit.radius_m * math.cos(phases[d]), 3), round(c[1] + cfg.orbit.radius_m * math.sin(phases[d]), 3)]
@@ -408,9 +416,16 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                                     "hover"):
                 raise SkycapError(f"sortie {sortie}: not every drone reached hover within {cfg.takeoff_timeout_s:.0f} s; "
                                   f"see {logs}")
+            slots = {d: phases[d] for d in alive}
+            if sortie > 1:
+                # the drones took off where the last orbit left them: turn the slots (spacing kept) to where they
+                # are, or a drone would cross the circle (and its teammates' paths) to reach its first slot
+                slots = _slots_where_they_are(slots, {d: fleet.states[d].position_ned_m for d in alive}, center)
+                log.info("sortie %d: slots turned to the drones' positions: %s", sortie,
+                         {d: round(math.degrees(v), 1) for d, v in slots.items()})
             plan = make_orbit_plan(alive, center, o.radius_m, o.altitude_m, 0.0 if track else o.angular_speed_rad_s,
                                    o.direction, start_in_s=o.start_in_s, min_separation_m=o.min_separation_m,
-                                   phase_offset_rad={d: phases[d] for d in alive})
+                                   phase_offset_rad=slots)
             if sortie == 1:
                 flight.save_plan(plan)  # plan.json: the first sortie's plan; every sortie's is in summary.json
             plans.append(plan)

@@ -100,3 +100,17 @@ def test_builtin_demo_refuses_px4_options_and_bad_sorties():
     with pytest.raises(ConfigError, match="sorties"):
         DemoConfig(sorties=0).validate()
     assert DemoConfig(sorties=2).validate().autopilot == "builtin"
+
+
+def test_later_sortie_slots_turn_to_where_the_drones_are():
+    """After an orbit the drones land half a circle on; a second plan with the first slots would make them cross
+    the circle (and each other): the slots are turned together, spacing kept."""
+    from apps.demo import _slots_where_they_are
+
+    slots = {"drone_1": 0.0, "drone_2": math.pi}
+    turned = _slots_where_they_are(slots, {"drone_1": (-8.2, -0.5, 0.0), "drone_2": (8.5, 0.4, 0.0)}, (0.0, 0.0, 0.0))
+    gap = math.remainder(turned["drone_2"] - turned["drone_1"], 2 * math.pi)
+    assert abs(abs(gap) - math.pi) < 1e-9  # spacing kept
+    assert abs(math.remainder(turned["drone_1"] - math.pi, 2 * math.pi)) < 0.1  # drone_1's slot is where it is
+    same = _slots_where_they_are(slots, {"drone_1": (8.0, 0.0, 0.0), "drone_2": (-8.0, 0.0, 0.0)}, (0.0, 0.0, 0.0))
+    assert same == pytest.approx(slots, abs=1e-9)
