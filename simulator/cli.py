@@ -21,7 +21,7 @@ publishes SimTruth from SIH's true states (:mod:`simulator.px4_truth`: resampled
 = the fixed ``--gimbal-pitch-deg``, SIH has no gimbal; the same simulated person). ``--param-at`` sets the PX4
 parameter through PX4's shell; ``--gps-jump`` is refused (PX4's estimator cannot be offset from outside).
 SIGINT/SIGTERM stop PX4 cleanly. PX4's consoles and logs go to ``<--out>/px4/instance_<i>/`` (``--out``
-given) or a temporary folder.
+given; ``px4.2``, ``px4.3``, ... when an earlier run's folder is there) or a temporary folder.
 """
 
 from __future__ import annotations
@@ -200,7 +200,12 @@ def run_px4(cfg: SimConfig, px4_dir: str | None = None, first_instance: int = 0,
         homes.append((float(lat), float(lon)))
     tmp = None
     if out is not None:
+        # PX4 makes each instance's folder fresh: never reuse one that holds an earlier run's consoles and logs
         workdir = Path(out) / "px4"
+        n_run = 1
+        while workdir.exists():
+            n_run += 1
+            workdir = Path(out) / f"px4.{n_run}"
     else:
         tmp = tempfile.TemporaryDirectory(prefix="skycap-px4-")
         workdir = Path(tmp.name)
