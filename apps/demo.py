@@ -6,6 +6,26 @@
     skycap demo --mode track --out flights/track       # active capture: find and follow the person
     skycap demo --mode track --set faults.drop_prob=0.3 --set 'faults.kill_agent="drone_3"'   # under faults
 
+    skycap demo --autopilot px4 --drones 2             # the same on real PX4 SITL (SIH) from ../shared/px4-sitl
+    skycap demo --sorties 2                            # take off, orbit, land twice without restarting anything
+
+``--autopilot px4``: the vehicles are real PX4 SITL instances with PX4's SIH simulator (``--px4-dir DIR``,
+default ``../shared/px4-sitl`` beside the checkout or ``$SKYCAP_PX4_SITL``; refused with a clear error when it
+is absent), started by ``skycap sim --autopilot px4`` (:mod:`simulator.px4_truth`): instances
+``px4_first_instance`` .. +N-1, instance i on MAVLink UDP 14540 + i (``mavlink_base`` does not apply), each
+drone's home under its orbit slot. The truth (rendered by the cameras, recorded to ``truth.mcap``, the
+reference of every orbit figure in the summary) is SIH's true state, altitudes above SIH's ground, camera pitch
+fixed (SIH has no gimbal). The estimate is PX4's EKF2 on SIH's sensors: ``rtk`` and the built-in simulator's
+``sim_set`` (estimator, ports) do not apply (only ``origin.*`` / ``vehicles.*`` are accepted), a GPS jump is
+refused, the kill-agent fault's parameter change goes through PX4's shell. ``summary.json`` names the
+autopilot under ``autopilot`` (kind, PX4 folder, version, instances).
+
+``--sorties N``: after landing, wait ``sortie_pause_s``, take off again, fly a new orbit plan, land; N times.
+The agents keep running and recording (their ``drone_<i>.s001.mcap`` holds every sortie: a file sortie is an
+agent start); ``plan.json`` is the first plan; ``summary.json`` keeps the first sortie's figures at the top
+and adds ``sorties`` (each orbit against its own plan, up to the land command that ended it; frame counts,
+rates, min separation and flight time there are the whole flight's). Faults act in the first sortie.
+
 ``--mode track`` (active capture): each agent fuses its own and its teammates' person detections (simulated
 detector, ``<drone>/sim/detections``) in its cooperative filter, publishes the fused target and flies the
 formation MPC around it, starting from the operator's approximate start position of the person
@@ -21,8 +41,8 @@ What was injected goes into ``summary.json`` under ``faults``.
 
 What it launches (each an OS process, as on the real system; logs in ``<out>/logs/``):
 
-1. the simulator (``skycap sim``: PX4-like vehicles over MAVLink UDP; the drones stand on the ground under
-   their orbit slots) and its ground-truth publisher (SimTruth on ``sim/truth``, recorded to ``truth.mcap``);
+1. the simulator (``skycap sim``: PX4-like vehicles over MAVLink UDP, or PX4 SITL with ``--autopilot px4``;
+   the drones stand on the ground under their orbit slots) and its ground-truth publisher (SimTruth on ``sim/truth``, recorded to ``truth.mcap``);
 2. a camera node per drone (the simulator's scene camera: CameraInfo, CameraFrame, simulated Keypoints2D),
    when the simulator provides one;
 3. one onboard agent per drone (``skycap agent``: MAVSDK to its vehicle, Zenoh to the fleet, MCAP recording);
@@ -48,6 +68,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import msgspec
 
 from apps.supervisor import ProcessSupervisor
 from comms.faults import MalformedDetectionsInjector
@@ -164,6 +186,20 @@ class DemoConfig:
     land_timeout_s: float = 60.0
     #: steady-orbit settling time excluded from the errors (s after the plan's start time)
     settle_s: float = 8.0
+    #: the vehicles' autopilot: "builtin" (the project's simulated vehicles, ``skycap sim``) or "px4" (real PX4
+    #: SITL with PX4's SIH simulator, ``skycap sim --autopilot px4``; see the module doc)
+    autopilot: str = "builtin"
+    #: the PX4 SITL build (``--autopilot px4``); empty: ``../shared/px4-sitl`` beside the checkout (or
+    #: ``$SKYCAP_PX4_SITL``)
+    px4_dir: str = ""
+    #: PX4 instance number of the first drone (instance i: MAVLink UDP 14540 + i; 0..9) -- lets two PX4 fleets
+    #: run side by side on one machine
+    px4_first_instance: int = 0
+    #: take-off, orbit, landing this many times without restarting anything (the agents keep recording into
+    #: the same files); the summary then has one entry per sortie under ``sorties``
+    sorties: int = 1
+    #: seconds on the ground between a landing and the next take-off (PX4 disarms ~2 s after touchdown)
+    sortie_pause_s: float = 5.0
 
     def validate(self) -> "DemoConfig":
         if not 1 <= self.drones <= 20:
@@ -186,6 +222,28 @@ class DemoConfig:
             raise ConfigError(f"faults.gps_jump_ned_m={f.gps_jump_ned_m}: give [north, east, down] metres")
         if not 0.0 <= f.drop_prob <= 1.0 or f.detection_delay_s < 0 or f.malformed_detections_hz < 0:
             raise ConfigError("faults: drop_prob in 0..1, detection_delay_s >= 0, malformed_detections_hz >= 0")
+        if self.autopilot not in ("builtin", "px4"):
+            raise ConfigError(f"autopilot={self.autopilot!r}; use 'builtin' or 'px4'")
+        if not 1 <= self.sorties <= 20 or self.sortie_pause_s < 0:
+            raise ConfigError(f"sorties={self.sorties}, sortie_pause_s={self.sortie_pause_s}: use 1..20 sorties and "
+                              "a pause >= 0 s")
+        if self.autopilot == "px4":
+            if not 0 <= self.px4_first_instance <= 10 - self.drones:
+                raise ConfigError(f"px4_first_instance={self.px4_first_instance} with {self.drones} drones: PX4 "
+                                  f"instances must lie in 0..9 (use 0..{10 - self.drones})")
+            if f.gps_jump_drone:
+                raise ConfigError("faults.gps_jump_drone acts on the built-in simulator's estimator; PX4's cannot be "
+                                  "offset from outside: leave it out with --autopilot px4")
+            if self.mavlink_base != DemoConfig.mavlink_base:
+                raise ConfigError("mavlink_base is the built-in simulator's; with --autopilot px4 the ports follow "
+                                  "the PX4 instances (14540 + instance): set px4_first_instance instead")
+            other = [x for x in self.sim_set if not x.strip().startswith(("origin.", "vehicles."))]
+            if other:
+                raise ConfigError(f"sim_set {other}: with --autopilot px4 only origin.* and vehicles.* apply (the "
+                                  "rest configures the built-in simulator's vehicles); set PX4 parameters with "
+                                  "PX4 itself")
+        elif self.px4_dir or self.px4_first_instance:
+            raise ConfigError("px4_dir and px4_first_instance are for autopilot='px4'")
         if self.duration_s < self.settle_s + 5:
             raise ConfigError(f"duration_s={self.duration_s} leaves no steady orbit after settle_s={self.settle_s}; "
                               f"use --duration {self.settle_s + 10:.0f} or more")
@@ -200,15 +258,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="a new flight folder (default: flights/demo-<UTC date>-<time>)")
     p.add_argument("--mode", choices=("orbit", "track"), default=None,
                    help="orbit (default): circle the plan's centre; track: find and follow the person (active capture)")
+    p.add_argument("--autopilot", choices=("builtin", "px4"), default=None,
+                   help="builtin (default): the project's simulated vehicles; px4: real PX4 SITL with SIH")
+    p.add_argument("--px4-dir", default=None, help="the PX4 SITL build for --autopilot px4 (default ../shared/px4-sitl)")
+    p.add_argument("--sorties", type=int, default=None,
+                   help="take off, orbit and land this many times without restarting anything (default 1)")
     add_config_args(p)
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     cfg = config_from_args(DemoConfig, args, {"drones": args.drones, "duration_s": args.duration, "out": args.out,
-                                                "mode": getattr(args, "mode", None)})
+                                                "mode": getattr(args, "mode", None),
+                                                "autopilot": getattr(args, "autopilot", None),
+                                                "px4_dir": getattr(args, "px4_dir", None),
+                                                "sorties": getattr(args, "sorties", None)})
     summary = run_demo(cfg.validate())
-    return 0 if summary is not None else 1
+    return 0 if summary is not None and "sortie_error" not in summary else 1
+
+
+#: the agents' mission states in the air (onboard.mission.AIRBORNE)
+_AIRBORNE_STATES = ("takeoff", "hover", "orbit", "paused", "landing", "returning")
 
 
 def _drone_ids(n: int) -> list[str]:
@@ -220,6 +290,14 @@ def _look_down_deg(cfg: DemoConfig) -> float:
     return -math.degrees(math.atan2(cfg.orbit.altitude_m + cfg.orbit.center_ned_m[2], cfg.orbit.radius_m))
 
 
+def _slots_where_they_are(slots: dict[str, float], positions_ned_m: dict, center_ned_m) -> dict[str, float]:
+    """``slots`` (phase offsets, rad) all turned by one angle -- the circular mean of each drone's bearing from
+    the centre minus its slot -- so that the spacing is kept and each slot lies nearest its drone."""
+    diffs = [math.atan2(p[1] - center_ned_m[1], p[0] - center_ned_m[0]) - slots[d] for d, p in positions_ned_m.items()]
+    turn = math.atan2(sum(math.sin(a) for a in diffs), sum(math.cos(a) for a in diffs))
+    return {d: math.remainder(v + turn, 2 * math.pi) for d, v in slots.items()}
+
+
 def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[float]]:
     c = cfg.orbit.center_ned_m
     return [[round(c[0] + cfg.orbit.radius_m * math.cos(phases[d]), 3), round(c[1] + cfg.orbit.radius_m * math.sin(phases[d]), 3)]
@@ -228,6 +306,8 @@ def _spawn_positions(cfg: DemoConfig, phases: dict[str, float]) -> list[list[flo
 
 def run_demo(cfg: DemoConfig) -> dict | None:
     """Run the whole demo; returns the summary dict (None when the flight produced none)."""
+    px4 = cfg.autopilot == "px4"
+    px4_folder = _px4_folder(cfg) if px4 else None  # before anything is made: a clear error when PX4 is absent
     if not cfg.out:
         cfg = dataclasses.replace(cfg, out=time.strftime("flights/demo-%Y%m%d-%H%M%S", time.gmtime()))
     flight = FlightFolder(cfg.out)
@@ -240,13 +320,16 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     track = cfg.mode == "track"
     ids = _drone_ids(cfg.drones)
     phases = evenly_spaced_phases(ids)
-    sim_set = [f"vehicles.count={cfg.drones}", f"ports.offboard_base={cfg.mavlink_base}", "ports.local_base=0",
-               "ports.gcs_port=0"]
-    if cfg.orbit.spawn_under_slots:
+    # the vehicles' MAVLink ports: the built-in simulator's from mavlink_base, PX4's from its instance numbers
+    mavlink_base = 14540 + cfg.px4_first_instance if px4 else cfg.mavlink_base
+    sim_set = [f"vehicles.count={cfg.drones}"]
+    if not px4:  # the built-in simulator's ports and estimator (PX4 SITL has its own: SIH's GPS and PX4's EKF)
+        sim_set += [f"ports.offboard_base={cfg.mavlink_base}", "ports.local_base=0", "ports.gcs_port=0"]
+        if (cfg.track.rtk if track else cfg.rtk):
+            sim_set += ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
+    if cfg.orbit.spawn_under_slots:  # the built-in vehicles' spawn points, PX4's homes
         spawn = ", ".join(f"[{n}, {e}]" for n, e in _spawn_positions(cfg, phases))
         sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")
-    if (cfg.track.rtk if track else cfg.rtk):
-        sim_set += ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
     fc = cfg.faults
     sim_set += cfg.sim_set
     save_config(cfg, flight.config_path)
@@ -259,6 +342,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     fleet = FleetClient(cfg.fleet, bus, heartbeat_hz=2.0)
     summary = None
     killed: set[str] = set()
+    plans: list = []  #: every sortie's orbit plan, in order
+    sortie_error: dict = {}  #: the sortie that failed after an orbit was flown, and why
+    orbits_flown = [0]  #: sorties whose orbit was flown to its end (landing may still have failed)
     fault_report: dict = {"config": {k: v for k, v in vars(cfg.faults).items()}}
     t_begin = time.monotonic()
     try:
@@ -266,6 +352,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         sim_cmd = py + ["sim", "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint, "--truth-hz",
                         str(cfg.truth_hz), "--out", str(logs / "sim"), "--status-every", "10",
                         "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
+        if px4:
+            sim_cmd += ["--autopilot", "px4", "--px4-dir", str(px4_folder), "--px4-first-instance",
+                        str(cfg.px4_first_instance)]
         for s in sim_set:
             sim_cmd += ["--set", s]
         if fc.gps_jump_drone:
@@ -284,7 +373,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                 procs.start(f"camera_{d}", cmd)
         for i, d in enumerate(ids):
             cmd = py + ["agent", "--drone-id", d, "--fleet", cfg.fleet, "--connection",
-                        f"udpin://0.0.0.0:{cfg.mavlink_base + i}", "--record-dir", str(out),
+                        f"udpin://0.0.0.0:{mavlink_base + i}", "--record-dir", str(out),
                         "--zenoh-connect", cfg.zenoh_endpoint]
             if track:
                 # the camera node tags each frame with the drone's latest published estimate: publish it often
@@ -310,49 +399,91 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         procs.check_alive()
         if not ok:
             raise SkycapError(f"the drones did not report healthy within {cfg.ready_timeout_s:.0f} s; see {logs}")
-        acks = fleet.command("takeoff", wait_s=10, expect=ids, results=("accepted", "refused", "failed"))
-        _require(acks, ids, "takeoff")
-        if not fleet.wait_until(all_(lambda f, d: f.healths[d].state == "hover"), cfg.takeoff_timeout_s, "hover"):
-            raise SkycapError(f"not every drone reached hover within {cfg.takeoff_timeout_s:.0f} s; see {logs}")
         o = cfg.orbit
         # track mode: the plan's centre is the operator's approximate start position of the person, its slots
         # the formation's angles (no turning: the formation follows the person)
         center = tuple(cfg.track.start_guess_ned_m) if track else tuple(o.center_ned_m)
-        plan = make_orbit_plan(ids, center, o.radius_m, o.altitude_m, 0.0 if track else o.angular_speed_rad_s, o.direction,
-                               start_in_s=o.start_in_s, min_separation_m=o.min_separation_m, phase_offset_rad=phases)
-        flight.save_plan(plan)
-        fleet.send_plan(plan)
-        _require(fleet.wait_acks(plan.plan_id, ids, 5), ids, "plan")
-        _require(fleet.command("start", wait_s=10, expect=ids, results=("accepted", "refused", "failed")), ids, "start")
-        t_start = plan.start_time_ns * 1e-9
-        t_orbit_end = t_start + cfg.duration_s
-        log.info("%s for %.0f s", "tracking" if track else "orbiting", cfg.duration_s)
-        next_table = time.time()
         injector = MalformedDetectionsInjector(bus, cfg.fleet, ids, fc.malformed_detections_hz) if fc.malformed_detections_hz > 0 else None
-        while time.time() < t_orbit_end:
-            procs.check_alive(skip=killed)
-            now = time.time()
-            if fc.kill_agent and fc.kill_agent not in killed and now >= t_start + fc.kill_agent_at_s:
-                p = dict(procs.items)[fc.kill_agent]
-                os.killpg(p.pid, signal.SIGKILL)
-                killed.add(fc.kill_agent)
-                fault_report["agent_killed"] = {"drone": fc.kill_agent, "t_s": round(now, 3),
-                                                "after_start_s": round(now - t_start, 2)}
-                log.warning("FAULT: killed %s's agent (SIGKILL, pid %d) %.1f s after the start", fc.kill_agent, p.pid,
-                            now - t_start)
-            if injector is not None and now >= t_start:
-                injector.tick(now)
-            if now >= next_table:
-                next_table += 10.0
-                print(fleet.table(), flush=True)
-            time.sleep(0.5 if injector is None else min(0.5, 0.5 / fc.malformed_detections_hz))
-        if injector is not None:
-            fault_report["malformed_detections_injected"] = dict(injector.counts)
-        alive = [d for d in ids if d not in killed]
-        _require(fleet.command("land", wait_s=10, expect=alive, results=("accepted", "refused", "failed")), alive, "land")
-        if not fleet.wait_until(lambda f: all(f.healths[d].state == "landed" for d in alive), cfg.land_timeout_s, "landed"):
-            log.error("not every drone landed within %.0f s", cfg.land_timeout_s)
-        print(fleet.table(), flush=True)
+        def fly_sortie(sortie: int) -> None:
+            alive = [d for d in ids if d not in killed]
+            if sortie > 1:
+                log.info("sortie %d of %d: %.0f s on the ground, then take-off again", sortie, cfg.sorties,
+                         cfg.sortie_pause_s)
+                time.sleep(cfg.sortie_pause_s)
+            acks = fleet.command("takeoff", wait_s=10, expect=alive, results=("accepted", "refused", "failed"))
+            _require(acks, alive, f"takeoff (sortie {sortie})")
+            if not fleet.wait_until(lambda f: all(f.healths[d].state == "hover" for d in alive), cfg.takeoff_timeout_s,
+                                    "hover"):
+                raise SkycapError(f"sortie {sortie}: not every drone reached hover within {cfg.takeoff_timeout_s:.0f} s; "
+                                  f"see {logs}")
+            slots = {d: phases[d] for d in alive}
+            if sortie > 1:
+                # the drones took off where the last orbit left them: turn the slots (spacing kept) to where they
+                # are, or a drone would cross the circle (and its teammates' paths) to reach its first slot
+                slots = _slots_where_they_are(slots, {d: fleet.states[d].position_ned_m for d in alive}, center)
+                log.info("sortie %d: slots turned to the drones' positions: %s", sortie,
+                         {d: round(math.degrees(v), 1) for d, v in slots.items()})
+            plan = make_orbit_plan(alive, center, o.radius_m, o.altitude_m, 0.0 if track else o.angular_speed_rad_s,
+                                   o.direction, start_in_s=o.start_in_s, min_separation_m=o.min_separation_m,
+                                   phase_offset_rad=slots)
+            if sortie == 1:
+                flight.save_plan(plan)  # plan.json: the first sortie's plan; every sortie's is in summary.json
+            plans.append(plan)
+            fleet.send_plan(plan)
+            _require(fleet.wait_acks(plan.plan_id, alive, 5), alive, f"plan (sortie {sortie})")
+            _require(fleet.command("start", wait_s=10, expect=alive, results=("accepted", "refused", "failed")), alive,
+                     f"start (sortie {sortie})")
+            t_start = plan.start_time_ns * 1e-9
+            t_orbit_end = t_start + cfg.duration_s
+            log.info("sortie %d: %s for %.0f s", sortie, "tracking" if track else "orbiting", cfg.duration_s)
+            next_table = time.time()
+            while time.time() < t_orbit_end:
+                procs.check_alive(skip=killed)
+                now = time.time()
+                # faults: in the first sortie (their times count from its plan's start)
+                if sortie == 1 and fc.kill_agent and fc.kill_agent not in killed and now >= t_start + fc.kill_agent_at_s:
+                    p = dict(procs.items)[fc.kill_agent]
+                    os.killpg(p.pid, signal.SIGKILL)
+                    killed.add(fc.kill_agent)
+                    fault_report["agent_killed"] = {"drone": fc.kill_agent, "t_s": round(now, 3),
+                                                    "after_start_s": round(now - t_start, 2)}
+                    log.warning("FAULT: killed %s's agent (SIGKILL, pid %d) %.1f s after the start", fc.kill_agent,
+                                p.pid, now - t_start)
+                if sortie == 1 and injector is not None and now >= t_start:
+                    injector.tick(now)
+                if now >= next_table:
+                    next_table += 10.0
+                    print(fleet.table(), flush=True)
+                time.sleep(0.5 if injector is None else min(0.5, 0.5 / fc.malformed_detections_hz))
+            if sortie == 1 and injector is not None:
+                fault_report["malformed_detections_injected"] = dict(injector.counts)
+            orbits_flown[0] = sortie
+            alive = [d for d in ids if d not in killed]
+            _require(fleet.command("land", wait_s=10, expect=alive, results=("accepted", "refused", "failed")), alive,
+                     f"land (sortie {sortie})")
+            landed = fleet.wait_until(lambda f: all(f.healths[d].state == "landed" for d in alive), cfg.land_timeout_s,
+                                      "landed")
+            print(fleet.table(), flush=True)
+            if not landed:
+                log.error("sortie %d: not every drone landed within %.0f s", sortie, cfg.land_timeout_s)
+                if sortie < cfg.sorties:
+                    raise SkycapError(f"sortie {sortie}: not every drone landed within {cfg.land_timeout_s:.0f} s: no "
+                                      f"further sortie; see {logs}")
+
+        for sortie in range(1, cfg.sorties + 1):
+            try:
+                fly_sortie(sortie)
+            except SkycapError as e:
+                if not orbits_flown[0]:
+                    raise  # nothing flown to summarise
+                # a sortie failed after an orbit was flown: keep what was measured, bring everyone down, report it
+                log.error("sortie %d failed: %s; landing every drone and summarising the orbits flown", sortie, e)
+                sortie_error.update(sortie=sortie, error=str(e))
+                alive = [d for d in ids if d not in killed]
+                fleet.command("land", wait_s=10, expect=alive, results=("accepted", "refused", "failed"))
+                fleet.wait_until(lambda f: all(f.healths[d].state not in _AIRBORNE_STATES for d in alive),
+                                 cfg.land_timeout_s, "on the ground")
+                break
     finally:
         codes = procs.stop([d for d in ids if d not in killed], timeout_s=30.0)
         codes.update(procs.stop(None, timeout_s=15.0))
@@ -380,7 +511,16 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             recon["summary"] = json.loads(fresh[0].read_text())
         log.info("skycap reconstruct %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
                  logs / "reconstruct.log")
-    summary = summarize_flight(out, settle_s=cfg.settle_s)
+    summary = summarize_flight(out, settle_s=cfg.settle_s)  # the first sortie (plan.json)
+    if cfg.sorties > 1:
+        # one orbit per sortie in the same recordings (the agents were not restarted: drone_<i>.s001.mcap holds
+        # every sortie); each scored against its own plan, up to the first land command after its start
+        summary["sorties"] = [{"sortie": k + 1, "plan": msgspec.to_builtins(p),
+                               **summarize_flight(out, settle_s=cfg.settle_s, plan=p)}
+                              for k, p in enumerate(plans[:orbits_flown[0]])]
+        if sortie_error:
+            summary["sortie_error"] = sortie_error
+    summary["autopilot"] = _autopilot_report(cfg, px4_folder)
     if track:
         summary["mode"] = "track"
         summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
@@ -393,7 +533,12 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if cfg.faults != FaultsDemoConfig():
         summary["faults"] = fault_report
     flight.summary_path.write_text(json.dumps(summary, indent=2))
-    print(format_table(summary), flush=True)
+    print(f"autopilot: {summary['autopilot']['kind']}", flush=True)
+    for entry in summary.get("sorties", []):
+        print(f"sortie {entry['sortie']} (frames, rates, min_separation_m and flight_s: whole flight):\n"
+              + format_table(entry), flush=True)
+    if "sorties" not in summary:
+        print(format_table(summary), flush=True)
     if track:
         print(format_tracking_table(summary["tracking"]), flush=True)
     acc = recon.get("accuracy_vs_truth") or {}
@@ -402,6 +547,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
               f"PA-MPJPE {acc.get('pa_mpjpe_mm_window', float('nan')):.1f} mm over {acc.get('frames_scored_window', 0)} "
               f"frames; whole flight incl. take-off and landing MPJPE {acc['mpjpe_mm']:.1f} mm, "
               f"PA-MPJPE {acc['pa_mpjpe_mm']:.1f} mm", flush=True)
+    if sortie_error:
+        print(f"sortie {sortie_error['sortie']} of {cfg.sorties} FAILED: {sortie_error['error']}", flush=True)
     print(f"summary: {flight.summary_path}", flush=True)
     return summary
 
@@ -411,6 +558,42 @@ def _require(acks: dict, ids: list[str], what: str) -> None:
     bad = {d: f"{a.result}: {a.reason}" for d, a in acks.items() if a.result in ("refused", "failed")}
     if missing or bad:
         raise SkycapError(f"{what}: no answer from {missing}, refused/failed by {bad}; see the logs folder")
+
+
+def _px4_folder(cfg: DemoConfig) -> Path:
+    """The PX4 SITL build for ``--autopilot px4``, or an error that says how to provide it."""
+    from simulator.px4_sitl import Px4SitlError, find_px4_folder
+
+    try:
+        return find_px4_folder(cfg.px4_dir or None)
+    except Px4SitlError as e:
+        raise SkycapError(f"skycap demo --autopilot px4 needs a PX4 SITL build: {e}. Give it with --px4-dir DIR "
+                          "(--set px4_dir=...), or use the built-in simulator (--autopilot builtin)") from None
+
+
+def _px4_version(folder: Path) -> str:
+    """The PX4 build's source as its folder's README.md names it (``PX4-Autopilot main at commit ...``)."""
+    import re
+
+    try:
+        text = (folder / "README.md").read_text(errors="replace")
+    except OSError:
+        return "unknown (no README.md in the PX4 folder)"
+    m = re.search(r"Source:\s*(.+?)(?:,\s*board|\n)", text)
+    return " ".join(m.group(1).replace("`", "").split()) if m else "unknown (README.md names no source)"
+
+
+def _autopilot_report(cfg: DemoConfig, px4_folder: Path | None) -> dict:
+    """What flew the vehicles, for summary.json."""
+    if px4_folder is None:
+        return {"kind": "builtin", "simulator": "skycap sim (the project's simulated PX4-like vehicles)",
+                "position_estimate": "rtk" if (cfg.track.rtk if cfg.mode == "track" else cfg.rtk) else "gps"}
+    return {"kind": "px4_sitl", "simulator": "PX4 SIH (sihsim_quadx, airframe 10040)", "px4_dir": str(px4_folder),
+            "version": _px4_version(px4_folder),
+            "instances": list(range(cfg.px4_first_instance, cfg.px4_first_instance + cfg.drones)),
+            "truth": "SIH HIL_STATE_QUATERNION (true state), resampled to SimTruth at "
+                     f"{cfg.truth_hz:g} Hz; altitudes above SIH's ground",
+            "position_estimate": "PX4 EKF2 on SIH's simulated sensors"}
 
 
 def _camera_command() -> list[str]:

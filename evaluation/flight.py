@@ -140,12 +140,14 @@ def _flight_logs(flight: FlightFolder, drone_ids: list[str], sortie: int | None)
 
 
 def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt_m: float = 0.3,
-                     sortie: int | None = None) -> dict:
+                     sortie: int | None = None, plan: OrbitPlan | None = None) -> dict:
     """The summary dict of a flight folder (see the module docstring) over every sortie of each drone, or
-    only ``sortie``; writes nothing."""
+    only ``sortie``; writes nothing. ``plan``: the orbit to score (default ``plan.json``); its steady window
+    ends at the first land command after the plan's start time, so a later orbit in the same recordings (a
+    second take-off without restarting the agents) is scored with its own plan."""
     flight = FlightFolder(flight_dir)
     flight_dir = flight.path
-    plan = flight.plan()
+    plan = flight.plan() if plan is None else plan
     drone_ids = sorted(plan.phase_offset_rad, key=natural_key)
     logs = _flight_logs(flight, drone_ids, sortie)
     per: dict[str, dict] = {}
@@ -162,7 +164,7 @@ def summarize_flight(flight_dir: str | Path, settle_s: float = 8.0, airborne_alt
             elif isinstance(msg, Health):
                 if msg.state == "orbit":
                     setpoint_hz.append(msg.rates_hz.get("setpoint", 0.0))
-            elif isinstance(msg, Command) and msg.action == "land":
+            elif isinstance(msg, Command) and msg.action == "land" and msg.header.t_sent_ns >= plan.start_time_ns:
                 t_land = min(t_land, msg.header.t_sent_ns * 1e-9)
         per[d] = {"_state_t": np.asarray(state_t), "_state_p": np.asarray(state_p, dtype=float).reshape(-1, 3),
                   "_frame_t": np.asarray(frame_t),

@@ -21,7 +21,31 @@ from skycap.frames import quat_wxyz_from_R
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TruthPublisher", "SimFaults", "schedule_faults"]
+__all__ = ["PersonTruth", "TruthPublisher", "SimFaults", "schedule_faults"]
+
+
+class PersonTruth:
+    """The simulated person's part of a ``SimTruth`` (:class:`simulator.scene.person.PersonSim` with the default
+    person), or a still person of zeros when the scene is unavailable (it needs the motion clips). Shared by the
+    built-in simulator's :class:`TruthPublisher` and PX4 SITL's :class:`simulator.px4_truth.SihTruthPublisher`."""
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.person = None
+        if enabled:
+            try:  # the scene is optional for the flight (it needs the motion clips)
+                from simulator.scene.config import PersonConfig
+                from simulator.scene.person import PersonSim
+
+                self.person = PersonSim(PersonConfig())
+            except Exception as e:
+                log.warning("no simulated person (%s): truth carries the vehicles only", e)
+        self._zeros = tuple(0.0 for _ in range(51))
+
+    def fields(self, t_s: float) -> dict:
+        """``SimTruth`` keyword arguments of the person at ``t_s`` (seconds since the simulation started)."""
+        if self.person is None:
+            return dict(person_joints_ned_m=self._zeros, person_root_ned_m=(0.0, 0.0, 0.0))
+        return self.person.state_at(t_s).truth_fields()
 
 
 class TruthPublisher:
@@ -34,16 +58,7 @@ class TruthPublisher:
                  gimbal_pitch_rad: float = 0.0, with_person: bool = True) -> None:
         self.world, self.bus, self.gimbal_pitch_rad = world, bus, gimbal_pitch_rad
         self.key = keys.sim_key(fleet, keys.TRUTH)
-        self.person = None
-        if with_person:
-            try:  # the scene is optional for the flight (it needs the motion clips)
-                from simulator.scene.config import PersonConfig
-                from simulator.scene.person import PersonSim
-
-                self.person = PersonSim(PersonConfig())
-            except Exception as e:
-                log.warning("no simulated person (%s): truth carries the vehicles only", e)
-        self._zeros = tuple(0.0 for _ in range(51))
+        self.person = PersonTruth(with_person)
         world.add_tick_hook(self.publish, rate_hz=rate_hz)
 
     def publish(self, t_ns: int, truths) -> None:
@@ -54,9 +69,8 @@ class TruthPublisher:
                                  float(v.gimbal_pitch_rad),
                                  gimbal_yaw_rad=0.0 if v.gimbal_yaw_rad is None else float(v.gimbal_yaw_rad))
                     for v in truths]
-        extra = self.person.state_at(self.world.t_s).truth_fields() if self.person is not None else \
-            dict(person_joints_ned_m=self._zeros, person_root_ned_m=(0.0, 0.0, 0.0))
-        self.bus.publish(self.key, SimTruth(header=SimTruth.make_header(keys.SIM, t_ns), vehicles=vehicles, **extra))
+        self.bus.publish(self.key, SimTruth(header=SimTruth.make_header(keys.SIM, t_ns), vehicles=vehicles,
+                                            **self.person.fields(self.world.t_s)))
 
 
 @dataclass
