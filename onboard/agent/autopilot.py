@@ -86,6 +86,9 @@ class MavsdkAutopilot:
         self._tasks: list[asyncio.Task] = []
         #: the latest of every telemetry stream (replaced, never changed in place, on each sample)
         self.telemetry = Telemetry()
+        #: every reported mode change (monotonic s, old, new), for the supervisor (a short excursion between two of
+        #: its checks is not lost); it drops what it has read
+        self.mode_changes: list[tuple[float, str, str]] = []
         self.last_state: VehicleState | None = None
         self._seq = 0
         self.offboard_active = False
@@ -158,6 +161,10 @@ class MavsdkAutopilot:
             put(landed_state=LANDED_STATES.get(int(v), "unknown"))
 
         def mode(v):
+            old = self.telemetry.flight_mode
+            if v.name != old:
+                log.info("%s: autopilot mode %s -> %s", self.drone_id, old, v.name)
+                self.mode_changes.append((time.monotonic(), old, v.name))
             put(flight_mode=v.name)
 
         def battery(v):

@@ -69,6 +69,7 @@ class VehicleSupervisor:
         self.takeoff_confirmed = False
         #: the autopilot's current take-over of an offboard flight: (monotonic s, mode, the agent had stalled)
         self._takeover: tuple[float, str, bool] | None = None
+        self._stalled = False
         #: every take-over seen: {"t_unix_s", "mode", "stalled", "outcome"} (the agent's health and logs say so)
         self.takeovers: list[dict] = []
         self._separation_warned = False
@@ -109,14 +110,33 @@ class VehicleSupervisor:
         resume or follow by ``autopilot.on_failsafe`` (see the module doc)."""
         ap = self.autopilot
         now = time.monotonic()
+        changes = list(getattr(ap, "mode_changes", ()))
+        if changes:
+            ap.mode_changes.clear()
         if not ap.offboard_active or now - ap.offboard_since_s < 2.0:
             self._takeover = None
+            self._stalled = False
             return
+        # our own stall beyond the autopilot's offboard-loss timeout: its failsafe fired, whether or not the mode
+        # it went to is still (or ever was) visible here (PX4 may return to OFFBOARD within a second when the
+        # setpoints resume; measured on PX4 SITL: a 1 s Return that MAVSDK never reported)
+        gap = self._setpoint_gap_s()
+        stalled_now = gap >= self.cfg.autopilot.offboard_loss_timeout_s
+        if stalled_now and not self._stalled and mode == "OFFBOARD" and self._takeover is None:
+            away = [new for _, old, new in changes if old == "OFFBOARD" and new != "OFFBOARD"]
+            self._report(away[0] if away else f"its offboard-loss action ({self.cfg.autopilot.offboard_loss_action})",
+                         True, f"setpoints stalled for {gap:.1f} s (> {self.cfg.autopilot.offboard_loss_timeout_s:.1f} s); "
+                               "the vehicle is back in OFFBOARD")
+        self._stalled = stalled_now
         if mode == "OFFBOARD":
             if self._takeover is not None:  # PX4 went back to offboard by itself (setpoints resumed)
                 t0, m0, stalled = self._takeover
                 self._report(m0, stalled, f"autopilot back in OFFBOARD by itself after {now - t0:.1f} s")
                 self._takeover = None
+            else:
+                for t, old, new in changes:  # a short excursion between two checks
+                    if old == "OFFBOARD" and new != "OFFBOARD" and not stalled_now:
+                        self._report(new, False, "autopilot back in OFFBOARD by itself")
             return
         if mode in ("unknown", ""):
             return

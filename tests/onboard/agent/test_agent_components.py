@@ -275,6 +275,30 @@ def test_vehicle_supervisor_alone():
     assert any("low battery 10%" in c[2] for c in calls if c[0] == "failsafe")
 
 
+def test_supervisor_reports_a_stall_the_autopilot_recovered_from_unseen():
+    """PX4 returns to OFFBOARD within a second when the setpoints resume: the mode seen may never change; the
+    agent's own stall beyond COM_OF_LOSS_T is reported once as the autopilot's failsafe."""
+    from onboard.agent.supervisor import VehicleSupervisor
+    from onboard.mission import Mission, State
+
+    warns, gap = [], [0.05]
+    ap = FakeAutopilot()
+    ap.offboard_active, ap.offboard_since_s = True, 0.0
+    mission = Mission()
+    mission.set_plan(make_orbit_plan(["drone_1"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.0, 1))
+    mission.state = State.ORBIT
+    sup = VehicleSupervisor(AgentConfig(drone_id="drone_1"), mission, ap, Teammates("drone_1"), failsafe=lambda r, a: None,
+                            stop_setpoints=lambda: None, resume_offboard=lambda: None, setpoints_flowing=lambda: True,
+                            warn=warns.append, setpoint_gap_s=lambda: gap[0])
+    sup.on_gcs_heartbeat()
+    sup.check()
+    gap[0] = 2.5
+    sup.check()
+    sup.check()  # once per stall
+    assert len(warns) == 1 and "setpoints stalled for 2.5 s" in warns[0] and "offboard-loss failsafe" in warns[0]
+    assert "its offboard-loss action (hold)" in warns[0] and mission.state == State.ORBIT
+
+
 # --- statistics -------------------------------------------------------------------------------------------
 def test_statistics_sum_the_subscriptions_counters():
     from comms.transport import TopicStats

@@ -124,7 +124,9 @@ def test_stall_sigterm_and_ground_station_loss_on_px4(px4):
     os.killpg(p1.pid, signal.SIGSTOP)
     time.sleep(2.5)
     os.killpg(p1.pid, signal.SIGCONT)
-    assert f.fleet.wait_until(lambda fl: "autopilot took over in RETURN_TO_LAUNCH" in f.log("drone_1"), 10,
+    # reported whether PX4 is still in Return or already back in OFFBOARD by itself (it is within ~1 s when the
+    # setpoints resume; MAVSDK may never report the short Return)
+    assert f.fleet.wait_until(lambda fl: "(offboard-loss failsafe after a setpoint stall)" in f.log("drone_1"), 10,
                               "takeover reported"), f.log("drone_1")
     time.sleep(6.0)
     st = f.fleet.states["drone_1"]
