@@ -36,7 +36,7 @@ class Px4Flight:
     """``n`` PX4 SITL vehicles with homes at ``homes_ne_m`` (world north/east m about :data:`ORIGIN`), their truth,
     a rendezvous + fleet client, and helpers to start agents."""
 
-    def __init__(self, tmp: Path, homes_ne_m: list[tuple[float, float]]):
+    def __init__(self, tmp: Path, homes_ne_m: list[tuple[float, float]], params: dict[str, float] | None = None):
         from comms.transport import Transport, TransportConfig
         from groundstation.fleet import FleetClient
         from simulator.px4_sitl import Px4Sitl, SihTruthReader
@@ -48,7 +48,8 @@ class Px4Flight:
         self.fleet_id = "p" + uuid.uuid4().hex[:6]
         homes = [ned_to_geodetic([n, e, 0.0], *ORIGIN)[:2] for n, e in homes_ne_m]
         first = int(os.environ.get("SKYCAP_PX4_FIRST_INSTANCE", "0"))
-        self.px4 = Px4Sitl(tmp / "px4", self.n, first_instance=first, homes_geodetic=homes).start()
+        self.px4 = Px4Sitl(tmp / "px4", self.n, first_instance=first, homes_geodetic=homes,
+                           params=params).start()
         self.truth = SihTruthReader([self.px4.truth_port(k) for k in range(self.n)], ORIGIN)
         self.truth_log: list[list[tuple[float, np.ndarray]]] = [[] for _ in range(self.n)]
         self.truth.on_truth = lambda k, t: self.truth_log[k].append((t.t_received_ns * 1e-9, t.position_ned_m))
