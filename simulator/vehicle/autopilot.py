@@ -35,6 +35,9 @@ ACCEPTED, TEMPORARILY_REJECTED, DENIED, UNSUPPORTED, FAILED = 0, 1, 2, 3, 4
 # MAV_LANDED_STATE
 LANDED_UNDEFINED, LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = 0, 1, 2, 3, 4
 FORCE_MAGIC = 21196.0
+#: an Offboard switch this soon before the takeoff completes is overridden by the takeoff's Hold (PX4: the
+#: navigator and the commander run asynchronously, ~10 Hz; a model of that race, not a measured figure)
+TAKEOFF_RACE_S = 0.1
 
 # PX4 COM_OBL_RC_ACT values
 OBL_POSITION, OBL_ALTITUDE, OBL_STABILIZED, OBL_RETURN, OBL_LAND, OBL_HOLD, OBL_TERMINATE, OBL_DISARM = range(8)
@@ -176,8 +179,9 @@ class SimVehicle:
         self._hold_speed_m_s = math.nan
         self._hold_yaw = math.nan
         self._takeoff_target: np.ndarray | None = None
-        #: an Offboard switch arrived from Takeoff just as the takeoff completes: PX4's "takeoff complete" Hold wins
-        self._takeoff_override_pending = False
+        #: when an Offboard switch left Takeoff: if the takeoff completes within TAKEOFF_RACE_S after it, PX4's
+        #: "takeoff complete" Hold wins over the switch
+        self._offboard_from_takeoff_t_s = -math.inf
         self._land_xy: np.ndarray | None = None
         self._rtl_phase = ""
         self._rtl_alt_d = 0.0
@@ -407,9 +411,8 @@ class SimVehicle:
                 self._say(4, "Switching to Offboard is currently not available: no offboard signal")
                 return TEMPORARILY_REJECTED
             self._commanded()
-            if self.mode == FlightMode.TAKEOFF and self._takeoff_reached():
-                # PX4: the navigator's "takeoff complete -> Hold" of this same instant overrides the request
-                self._takeoff_override_pending = True
+            if self.mode == FlightMode.TAKEOFF:
+                self._offboard_from_takeoff_t_s = self.t_s
             self._set_mode(FlightMode.OFFBOARD)
             return ACCEPTED
         if fm == FlightMode.MISSION:
@@ -565,12 +568,13 @@ class SimVehicle:
             ):
                 self._disarm("Disarmed by auto preflight disarming")
                 return
-        if self._takeoff_override_pending:
-            self._takeoff_override_pending = False
-            if self.mode == FlightMode.OFFBOARD:
-                self._say(6, "Takeoff complete")
-                self._set_mode(FlightMode.HOLD)
-                self._hold_target = self._takeoff_target.copy()
+        if (self.mode == FlightMode.OFFBOARD and t_s - self._offboard_from_takeoff_t_s <= TAKEOFF_RACE_S
+                and self._takeoff_reached()):
+            # PX4: the navigator's "takeoff complete -> Hold" of (nearly) the same instant overrides the request
+            self._offboard_from_takeoff_t_s = -math.inf
+            self._say(6, "Takeoff complete")
+            self._set_mode(FlightMode.HOLD)
+            self._hold_target = self._takeoff_target.copy()
         # offboard loss failsafe (COM_OF_LOSS_T, then COM_OBL_RC_ACT)
         if self.mode == FlightMode.OFFBOARD and not self.offboard_setpoint_fresh():
             self._offboard_loss_failsafe(landed)
