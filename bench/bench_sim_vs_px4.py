@@ -12,14 +12,17 @@ start, ``--orbit-s`` of orbit, land. Rows:
   SIH's true state (``SihTruthReader``); the agents' origin altitude is SIH's ground (489.4 m AMSL) so that
   "6 m" means the same height above the ground as on the simulator;
 * ``sim``: the built-in simulator in this process (MAVLink on 14610+i, never 14540..14549) with SIH's airframe
-  drag (``limits.drag_per_mass_1_s=1.0``: SIH_KDV 1 N/(m/s) on SIH_MASS 1 kg) and its default estimator errors
-  (GPS-like bias ~1 m);
-* ``sim-noerr``: the same with the estimator errors off (the control alone).
+  drag (``limits.drag_per_mass_1_s=1.0``: SIH_KDV 1 N/(m/s) on SIH_MASS 1 kg) and estimator errors of the size
+  of SIH's EKF error (``SIH_LIKE_ESTIMATOR``, from this bench's ``est_err_*`` on PX4);
+* ``sim-noerr``: the same with the estimator errors off (the control alone);
+* ``sim-gps``: SIH's drag with the simulator's default estimator errors (a GPS-like ~1 m bias).
 
 Figures over the steady orbit (plan start + ``--settle-s`` to the land command), true positions sampled at 20 Hz,
 against the plan: radius RMS and mean radial bias (+ = outside), altitude RMS, phase RMS (angle about the centre
 minus the slot angle: includes the fleet's common lag), mean phase (+ = ahead) and spacing RMS (phase with the
-fleet's mean removed) -- per drone, then the fleet's mean row. The machine is printed with the table.
+fleet's mean removed) -- per drone, then the fleet's mean row; and the vehicle's own estimate (the agent's
+recording) against the truth: horizontal RMS, norm of the mean horizontal offset, vertical RMS. The machine is
+printed with the table.
 """
 
 from __future__ import annotations
@@ -53,6 +56,10 @@ ZENOH_ENDPOINT = "tcp/127.0.0.1:7461"
 SIM_OFFBOARD_BASE = 14610
 PX4_FIRST_INSTANCE = 3
 RADIUS_M, ALTITUDE_M, OMEGA_RAD_S = 8.0, 6.0, 0.15
+#: the simulator's estimator errors set like SIH's EKF2 error measured by this bench (est_err_* of the px4 row,
+#: 2026-11-26: ~0.12-0.19 m per horizontal axis, 0.1-0.6 m vertical, correlation times ~3 s)
+SIH_LIKE_ESTIMATOR = {"pos_bias_std_xy_m": 0.15, "pos_bias_std_z_m": 0.3, "pos_bias_time_constant_s": 3.0}
+RUNS = ("sim", "sim-noerr", "sim-gps", "px4")
 
 
 class TruthSampler:
@@ -104,6 +111,32 @@ def orbit_figures(plan, ids: list[str], t_s: np.ndarray, pos: np.ndarray) -> dic
     return out
 
 
+def estimate_figures(run_dir: Path, ids: list[str], t_s: np.ndarray, pos: np.ndarray) -> dict[str, dict[str, float]]:
+    """Per drone, from the agent's recording (the vehicle's reported estimate, world NED) within the truth samples'
+    time span: the estimate's error against the truth interpolated at each state's time -- horizontal RMS, mean
+    horizontal offset (norm of the mean vector), vertical RMS."""
+    from flightdata.flightlog import FlightLog
+    from shared_msgs import VehicleState
+
+    out = {}
+    for k, d in enumerate(ids):
+        files = sorted(run_dir.glob(f"{d}.s*.mcap"))
+        states = [m for f in files for m in FlightLog(f).read_topic("state", VehicleState)]
+        te = np.array([m.header.t_measurement_ns * 1e-9 for m in states])
+        pe = np.array([m.position_ned_m for m in states])
+        sel = (te >= t_s[0]) & (te <= t_s[-1])
+        if sel.sum() < 10:
+            out[d] = {"est_err_h_rms_m": math.nan, "est_err_h_mean_m": math.nan, "est_err_v_rms_m": math.nan}
+            continue
+        te, pe = te[sel], pe[sel]
+        pt = np.stack([np.interp(te, t_s, pos[k, :, j]) for j in range(3)], axis=1)
+        e = pe - pt
+        out[d] = {"est_err_h_rms_m": float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))),
+                  "est_err_h_mean_m": float(np.hypot(*e[:, :2].mean(axis=0))),
+                  "est_err_v_rms_m": float(np.sqrt(np.mean(e[:, 2] ** 2)))}
+    return out
+
+
 def _spawns_ne(ids: list[str]) -> list[tuple[float, float]]:
     from onboard.orbit import evenly_spaced_phases
 
@@ -152,7 +185,9 @@ def fly(kind: str, n: int, orbit_s: float, settle_s: float, workdir: Path, sim_s
             spawn = ", ".join(f"[{sn:.3f}, {se:.3f}]" for sn, se in spawns)
             over = [f"vehicles.count={n}", f"ports.offboard_base={SIM_OFFBOARD_BASE}", "ports.local_base=0",
                     "ports.gcs_port=0", f"vehicles.spawn_ne_m=[{spawn}]", "limits.drag_per_mass_1_s=1.0"]
-            if kind == "sim-noerr":
+            if kind == "sim":
+                over += [f"estimator.{k}={v}" for k, v in SIH_LIKE_ESTIMATOR.items()]
+            elif kind == "sim-noerr":
                 over += ["estimator.pos_bias_std_xy_m=0", "estimator.pos_bias_std_z_m=0", "estimator.pos_noise_std_m=0",
                          "estimator.vel_noise_std_m_s=0", "estimator.att_noise_std_deg=0"]
             over += sim_set
@@ -194,7 +229,19 @@ def fly(kind: str, n: int, orbit_s: float, settle_s: float, workdir: Path, sim_s
         fleet.command("land", wait_s=10, expect=ids, results=("accepted", "refused", "failed"))
         fleet.wait_until(lambda f: all(f.healths[d].state == "landed" for d in ids), 40.0, "landed")
         win = (t >= t_start + settle_s) & (t <= t_start + orbit_s)
-        return {"figures": orbit_figures(plan, ids, t[win], pos[:, win]), "samples": int(win.sum()), "note": note}
+        np.savez(run_dir / "truth.npz", t_unix_s=t, pos_ned_m=pos, window=win)
+        for p in procs:  # the agents close their recordings on SIGTERM
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            p.wait(20)
+        figs = orbit_figures(plan, ids, t[win], pos[:, win])
+        est = estimate_figures(run_dir, ids, t[win], pos[:, win])
+        for d in ids:
+            figs[d].update(est[d])
+        if world is not None:  # a loaded machine: the simulation dropped backlog (its clock then lags the agents')
+            note += f"; {world.overruns} times over 0.25 s behind real time"
+        return {"figures": figs, "samples": int(win.sum()), "note": note}
     finally:
         for p in procs:
             if p.poll() is None:
@@ -215,18 +262,19 @@ def fly(kind: str, n: int, orbit_s: float, settle_s: float, workdir: Path, sim_s
             world.stop()
 
 
-COLS = ("radius_rms_m", "radial_bias_m", "alt_rms_m", "phase_rms_deg", "phase_mean_deg", "spacing_rms_deg")
+COLS = ("radius_rms_m", "radial_bias_m", "alt_rms_m", "phase_rms_deg", "phase_mean_deg", "spacing_rms_deg",
+        "est_err_h_rms_m", "est_err_h_mean_m", "est_err_v_rms_m")
 
 
 def format_table(results: dict[str, dict]) -> str:
-    head = f"{'run':10s} {'drone':8s} " + " ".join(f"{c:>15s}" for c in COLS)
+    head = f"{'run':10s} {'drone':8s} " + " ".join(f"{c:>16s}" for c in COLS)
     lines = [head, "-" * len(head)]
     for kind, r in results.items():
         figs = r["figures"]
         for d, row in figs.items():
-            lines.append(f"{kind:10s} {d:8s} " + " ".join(f"{row[c]:15.3f}" for c in COLS))
+            lines.append(f"{kind:10s} {d:8s} " + " ".join(f"{row[c]:16.3f}" for c in COLS))
         mean = {c: float(np.mean([row[c] for row in figs.values()])) for c in COLS}
-        lines.append(f"{kind:10s} {'mean':8s} " + " ".join(f"{mean[c]:15.3f}" for c in COLS))
+        lines.append(f"{kind:10s} {'mean':8s} " + " ".join(f"{mean[c]:16.3f}" for c in COLS))
     return "\n".join(lines)
 
 
@@ -235,15 +283,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drones", type=int, default=3)
     ap.add_argument("--orbit-s", type=float, default=40.0, help="seconds of orbit after the plan's start")
     ap.add_argument("--settle-s", type=float, default=8.0, help="seconds after the start left out of the figures")
-    ap.add_argument("--only", default="sim,sim-noerr,px4", help="comma-separated runs: sim, sim-noerr, px4")
+    ap.add_argument("--only", default="sim,px4", help=f"comma-separated runs: {', '.join(RUNS)}")
     ap.add_argument("--sim-set", action="append", default=[], help="extra simulator override (repeatable)")
     ap.add_argument("--workdir", default="", help="where agents' logs/recordings and PX4's files go (default: temp)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     kinds = [k.strip() for k in args.only.split(",") if k.strip()]
-    bad = [k for k in kinds if k not in ("sim", "sim-noerr", "px4")]
+    bad = [k for k in kinds if k not in RUNS]
     if bad:
-        ap.error(f"unknown run(s) {bad}; use sim, sim-noerr, px4")
+        ap.error(f"unknown run(s) {bad}; use {', '.join(RUNS)}")
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_sim_vs_px4_"))
     results = {}
     for k in kinds:
