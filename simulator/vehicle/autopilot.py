@@ -188,8 +188,6 @@ class SimVehicle:
         self._rtl_descend_d = 0.0
         #: the current mode is the offboard-loss failsafe's: back to Offboard when setpoints resume (PX4)
         self._offboard_failsafe = False
-        #: disarmed while in Offboard: not armable until another mode is set (PX4)
-        self._offboard_arming_locked = False
         self._offboard_sp: TrajectorySetpoint | None = None
         self._offboard_sp_t_s = -math.inf
         self._battery_failsafe_done = False
@@ -301,8 +299,11 @@ class SimVehicle:
     # ------------------------------------------------------------------ commands (return MAV_RESULT)
     @property
     def prearm_ok(self) -> bool:
-        """PX4's pre-arm checks as the SYS_STATUS PREARM bit reports them (MAVSDK ``is_armable``)."""
-        return self.gps_ok and not self._battery_critical() and not self._offboard_arming_locked
+        """PX4's pre-arm checks as the SYS_STATUS PREARM bit reports them (MAVSDK ``is_armable``): GPS fix, battery,
+        and in Offboard a live offboard signal -- e.g. a vehicle that landed from Offboard stays in Offboard and
+        is not armable until setpoints stream again or another mode is set (measured on PX4)."""
+        return (self.gps_ok and not self._battery_critical()
+                and not (self.mode == FlightMode.OFFBOARD and not self.offboard_setpoint_fresh()))
 
     def cmd_arm(self, arm: bool, force: bool = False) -> int:
         if arm:
@@ -314,10 +315,6 @@ class SimVehicle:
                     return DENIED
                 if self._battery_critical():
                     self._say(4, "Arming denied: battery critical")
-                    return DENIED
-                if self._offboard_arming_locked:
-                    # PX4: a vehicle disarmed in Offboard (e.g. landed from it) is armable again only after a mode change
-                    self._say(4, "Arming denied: disarmed in Offboard, switch mode first")
                     return DENIED
                 if self.mode == FlightMode.OFFBOARD and not self.offboard_setpoint_fresh():
                     self._say(4, "Arming denied: no offboard signal")
@@ -342,8 +339,6 @@ class SimVehicle:
 
     def _disarm(self, why: str) -> None:
         self.armed = False
-        if self.mode == FlightMode.OFFBOARD:
-            self._offboard_arming_locked = True
         self._say(6, why)
 
     def _commanded(self) -> None:
@@ -455,8 +450,6 @@ class SimVehicle:
             return
         prev = self.mode
         self.mode = mode
-        if mode != FlightMode.OFFBOARD:
-            self._offboard_arming_locked = False
         self._hold_yaw = self.est_yaw_rad
         p = self.est_position_ned_m
         v = self.est_velocity_ned_m_s

@@ -236,11 +236,10 @@ def test_home_is_the_ground_at_the_spawn_and_relative_altitude_is_above_it():
     assert gp.alt - gp.relative_alt == pytest.approx(o.alt_m * 1000, abs=100)
 
 
-def test_sys_status_prearm_clear_while_disarmed_in_offboard():
+def test_sys_status_prearm_clear_in_offboard_without_setpoints():
     r = Rig()
     fast_forward(r.v, 1.2)
-    r.v._set_mode(FlightMode.OFFBOARD)
-    r.v._disarm("test")
+    r.v._set_mode(FlightMode.OFFBOARD)  # e.g. landed and disarmed from Offboard, the agent no longer streaming
     r.out.msgs.clear()
     r.ep.send_stream("SYS_STATUS")
     st = next(m for m in r.out.msgs if m.get_type() == "SYS_STATUS")
