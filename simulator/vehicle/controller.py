@@ -115,8 +115,8 @@ class PositionController:
 
     def reset(self, velocity_ned_m_s: np.ndarray | None = None) -> None:
         """Clear the integral and the acceleration filter (``velocity_ned_m_s``: kept for the caller's record)."""
-        self._vel_int = np.zeros(3)
-        self._vel_dot = np.zeros(3)
+        self._vel_int = [0.0, 0.0, 0.0]
+        self._vel_dot = [0.0, 0.0, 0.0]
         self.velocity_setpoint_ned_m_s = np.zeros(3) if velocity_ned_m_s is None else np.asarray(velocity_ned_m_s, float).copy()
         self.accel_setpoint_ned_m_s2 = np.zeros(3)
 
@@ -159,82 +159,102 @@ class PositionController:
         vmax_dn = (lim.max_speed_down_m_s if math.isnan(sp.max_speed_down_m_s)
                    else min(sp.max_speed_down_m_s, lim.max_speed_down_m_s))
 
+        # (per-axis Python floats: this runs at the physics rate for every vehicle; numpy on 3-vectors is slower)
+        nan = math.nan
+        pos_sp = sp.position_ned_m.tolist()
+        vel_ff = sp.velocity_ned_m_s.tolist()
+        acc_ff = sp.accel_ned_m_s2.tolist()
+        pos = np.asarray(position_ned_m, float).tolist()
+        vel = np.asarray(velocity_ned_m_s, float).tolist()
+
         # --- position P -> velocity setpoint (+ feed-forward), PX4 _positionControl ---
-        kp = np.array([g.pos_xy_p, g.pos_xy_p, g.pos_z_p])
-        vel_from_pos = kp * (sp.position_ned_m - position_ned_m)  # NaN where no position setpoint
-        vel_sp = sp.velocity_ned_m_s.copy()
-        for k in range(3):  # addIfNotNan: a NaN feed-forward becomes the position term alone
-            if math.isnan(vel_sp[k]):
-                vel_sp[k] = vel_from_pos[k]
-            elif not math.isnan(vel_from_pos[k]):
-                vel_sp[k] += vel_from_pos[k]
-        vel_from_pos = np.nan_to_num(vel_from_pos)
+        kp = (g.pos_xy_p, g.pos_xy_p, g.pos_z_p)
+        vel_from_pos = [kp[k] * (pos_sp[k] - pos[k]) for k in range(3)]  # NaN where no position setpoint
+        vel_sp = [0.0, 0.0, 0.0]
+        for k in range(3):  # addIfNotNan: a NaN feed-forward leaves the position term alone (NaN if neither)
+            ff, fp = vel_ff[k], vel_from_pos[k]
+            vel_sp[k] = fp if math.isnan(ff) else (ff if math.isnan(fp) else ff + fp)
+        vfp = [0.0 if math.isnan(x) else x for x in vel_from_pos]
         if not (math.isnan(vel_sp[0]) or math.isnan(vel_sp[1])):
-            vel_sp[:2] = constrain_xy(vel_from_pos[:2], vel_sp[:2] - vel_from_pos[:2], vmax_xy)
+            xy = constrain_xy(np.array(vfp[:2]), np.array([vel_sp[0] - vfp[0], vel_sp[1] - vfp[1]]), vmax_xy)
+            vel_sp[0], vel_sp[1] = float(xy[0]), float(xy[1])
         if not math.isnan(vel_sp[2]):
             vel_sp[2] = min(max(vel_sp[2], -vmax_up), vmax_dn)
-        self.velocity_setpoint_ned_m_s = vel_sp.copy()
+        self.velocity_setpoint_ned_m_s = np.array(vel_sp)
 
         # --- velocity PID -> acceleration setpoint, PX4 _velocityControl ---
+        vd, vi = self._vel_dot, self._vel_int
         if accel_ned_m_s2 is not None:  # velocity derivative, low-passed at MPC_VELD_LP
             a = 1.0 - math.exp(-2.0 * math.pi * g.vel_deriv_lp_hz * dt_s) if g.vel_deriv_lp_hz > 0 else 1.0
-            self._vel_dot += a * (np.asarray(accel_ned_m_s2, float) - self._vel_dot)
-        self._vel_int[2] = min(max(self._vel_int[2], -GRAVITY_M_S2), GRAVITY_M_S2)
-        kvp = np.array([g.vel_xy_p, g.vel_xy_p, g.vel_z_p])
-        kvi = np.array([g.vel_xy_i, g.vel_xy_i, g.vel_z_i])
-        kvd = np.array([g.vel_xy_d, g.vel_xy_d, g.vel_z_d])
-        vel_err = vel_sp - velocity_ned_m_s  # NaN where no velocity control
-        acc_from_vel = kvp * vel_err + self._vel_int - kvd * self._vel_dot
-        acc_sp = sp.accel_ned_m_s2.copy()
+            acc_now = np.asarray(accel_ned_m_s2, float).tolist()
+            vd = [vd[k] + a * (acc_now[k] - vd[k]) for k in range(3)]
+        vi[2] = min(max(vi[2], -GRAVITY_M_S2), GRAVITY_M_S2)
+        kvp = (g.vel_xy_p, g.vel_xy_p, g.vel_z_p)
+        kvi = (g.vel_xy_i, g.vel_xy_i, g.vel_z_i)
+        kvd = (g.vel_xy_d, g.vel_xy_d, g.vel_z_d)
+        vel_err = [vel_sp[k] - vel[k] for k in range(3)]  # NaN where no velocity control
+        acc_sp = [0.0, 0.0, 0.0]
         for k in range(3):
-            if math.isnan(acc_sp[k]):
-                acc_sp[k] = acc_from_vel[k]
-            elif not math.isnan(acc_from_vel[k]):
-                acc_sp[k] += acc_from_vel[k]
-        acc_sp = np.nan_to_num(acc_sp)
+            fb = kvp[k] * vel_err[k] + vi[k] - kvd[k] * vd[k]
+            ff = acc_ff[k]
+            x = fb if math.isnan(ff) else (ff if math.isnan(fb) else ff + fb)
+            acc_sp[k] = 0.0 if math.isnan(x) else x
         if landed:
-            acc_sp[:2] = 0.0
-        self.accel_setpoint_ned_m_s2 = acc_sp.copy()
-        body_z, thrust, thr_vec = self._acceleration_control(acc_sp)
+            acc_sp[0] = acc_sp[1] = 0.0
+        self._vel_dot = vd
+        self.accel_setpoint_ned_m_s2 = np.array(acc_sp)
+        body_z, thrust, thr_vec = self._acceleration_control(self.accel_setpoint_ned_m_s2)
 
         # integrator: vertical anti-windup while the thrust saturates, horizontal tracking anti-windup
-        vel_err = np.nan_to_num(vel_err)
-        if (-thr_vec[2] <= lim.min_thrust_m_s2 + 1e-9 and vel_err[2] >= 0.0) or (
-            -thr_vec[2] >= lim.max_thrust_m_s2 - 1e-9 and vel_err[2] <= 0.0
-        ):
+        vel_err = [0.0 if math.isnan(x) else x for x in vel_err]
+        tz = -float(thr_vec[2])
+        if (tz <= lim.min_thrust_m_s2 + 1e-9 and vel_err[2] >= 0.0) or (tz >= lim.max_thrust_m_s2 - 1e-9 and vel_err[2] <= 0.0):
             vel_err[2] = 0.0
-        produced_xy = thr_vec[:2]  # specific force: the horizontal acceleration the thrust produces
-        limited_xy = produced_xy if float(acc_sp[:2] @ acc_sp[:2]) > float(produced_xy @ produced_xy) else acc_sp[:2]
+        px_, py_ = float(thr_vec[0]), float(thr_vec[1])  # specific force: the horizontal acceleration produced
+        lx, ly = (px_, py_) if acc_sp[0] ** 2 + acc_sp[1] ** 2 > px_ * px_ + py_ * py_ else (acc_sp[0], acc_sp[1])
         if g.vel_xy_p > 0:
-            vel_err[:2] = vel_err[:2] - (2.0 / g.vel_xy_p) * (acc_sp[:2] - limited_xy)
+            arw = 2.0 / g.vel_xy_p
+            vel_err[0] -= arw * (acc_sp[0] - lx)
+            vel_err[1] -= arw * (acc_sp[1] - ly)
         if landed and (math.isnan(vel_sp[2]) or vel_sp[2] >= 0.0):
-            self._vel_int[:] = 0.0  # on the ground and not climbing: PX4 resets the integral
+            self._vel_int = [0.0, 0.0, 0.0]  # on the ground and not climbing: PX4 resets the integral
         else:
-            self._vel_int += kvi * vel_err * dt_s
+            self._vel_int = [vi[k] + kvi[k] * vel_err[k] * dt_s for k in range(3)]
         return body_z, thrust, yaw_rate
 
     def _acceleration_control(self, acc_sp: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
         """PX4 _accelerationControl + the thrust saturation of _velocityControl: (body z FRD, thrust, thrust
         vector (specific force, NED, pointing up when hovering))."""
         lim = self.limits
+        ax, ay, az = (float(x) for x in acc_sp)
         # body z axis (FRD, pointing down when level) of the demanded specific force; PX4's body_z
-        bz = np.array([-acc_sp[0], -acc_sp[1], GRAVITY_M_S2 - acc_sp[2]])
-        n = float(np.linalg.norm(bz))
-        bz = bz / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
-        bz = _limit_tilt(bz, lim.max_tilt_rad)
-        thrust_ned_z = acc_sp[2] - GRAVITY_M_S2  # negative = up
-        collective = min(thrust_ned_z / max(float(bz[2]), 1e-3), -lim.min_thrust_m_s2)  # negative
-        thr = bz * collective  # specific force vector, NED (z negative when lifting)
+        bx, by, bz = -ax, -ay, GRAVITY_M_S2 - az
+        n = math.sqrt(bx * bx + by * by + bz * bz)
+        if n > 1e-9:
+            bx, by, bz = bx / n, by / n, bz / n
+        else:
+            bx, by, bz = 0.0, 0.0, 1.0
+        if bz < math.cos(lim.max_tilt_rad):  # PX4 ControlMath::limitTilt
+            h = math.hypot(bx, by)
+            if h < 1e-9:
+                bx, by, bz = 0.0, 0.0, 1.0
+            else:
+                st = math.sin(lim.max_tilt_rad)
+                bx, by, bz = bx / h * st, by / h * st, math.cos(lim.max_tilt_rad)
+        thrust_ned_z = az - GRAVITY_M_S2  # negative = up
+        collective = min(thrust_ned_z / max(bz, 1e-3), -lim.min_thrust_m_s2)  # negative
+        tx, ty, tz = bx * collective, by * collective, bz * collective  # specific force, NED (z < 0 lifting)
         # vertical priority keeping a horizontal margin, then horizontal saturation (PX4 _velocityControl)
-        txy = float(np.hypot(thr[0], thr[1]))
+        txy = math.hypot(tx, ty)
         tmax2 = lim.max_thrust_m_s2 ** 2
         tz_max2 = tmax2 - min(txy, lim.xy_thrust_margin_m_s2) ** 2
-        thr[2] = max(thr[2], -math.sqrt(max(tz_max2, 0.0)))
-        txy_max2 = tmax2 - thr[2] ** 2
+        tz = max(tz, -math.sqrt(max(tz_max2, 0.0)))
+        txy_max2 = tmax2 - tz * tz
         txy_max = math.sqrt(txy_max2) if txy_max2 > 0 else 0.0
         if txy > txy_max:
-            thr[:2] *= txy_max / txy
-        thrust = float(np.linalg.norm(thr))
+            tx, ty = tx * txy_max / txy, ty * txy_max / txy
+        thrust = math.sqrt(tx * tx + ty * ty + tz * tz)
+        thr = np.array([tx, ty, tz])
         body_z = -thr / thrust if thrust > 1e-9 else np.array([0.0, 0.0, 1.0])
         return body_z, thrust, thr
 
@@ -249,19 +269,7 @@ class PositionController:
         if not math.isnan(sp.yaw_rad):
             err = (sp.yaw_rad - yaw_rad + math.pi) % (2 * math.pi) - math.pi
             rate += self.gains.yaw_p * err
-        return float(np.clip(rate, -lim.max_yaw_rate_rad_s, lim.max_yaw_rate_rad_s))
-
-
-def _limit_tilt(body_z: np.ndarray, max_tilt_rad: float) -> np.ndarray:
-    """PX4 ``ControlMath::limitTilt``: the unit ``body_z`` (FRD z axis in NED) tilted at most ``max_tilt_rad`` from
-    the vertical (0, 0, 1), keeping its horizontal direction."""
-    if float(body_z[2]) >= math.cos(max_tilt_rad):
-        return body_z
-    h = float(np.hypot(body_z[0], body_z[1]))
-    if h < 1e-9:
-        return np.array([0.0, 0.0, 1.0])
-    s, c = math.sin(max_tilt_rad), math.cos(max_tilt_rad)
-    return np.array([body_z[0] / h * s, body_z[1] / h * s, c])
+        return min(max(float(rate), -lim.max_yaw_rate_rad_s), lim.max_yaw_rate_rad_s)
 
 
 def _braking_speed(dist_m: float, p_gain: float, accel_m_s2: float) -> float:
