@@ -1,7 +1,7 @@
 """The same 3-drone orbit flown by the unchanged onboard agents on the built-in simulator and on real PX4 SITL (SIH),
 each against its own truth: how well the built-in simulator predicts PX4 (issue 17).
 
-    python bench/bench_sim_vs_px4.py [--drones 3] [--orbit-s 40] [--only sim,sim-noerr,px4] [--sim-set K=V ...]
+    python bench/bench_sim_vs_px4.py [--drones 3] [--orbit-s 40] [--only sim,sim-noerr,sim-gps,px4] [--sim-set K=V ...]
 
 One flight per row, one after the other, each with its own fleet and Zenoh rendezvous (tcp/127.0.0.1:7461, not the
 default 7447), its own agents (``skycap agent``, MAVSDK) and the same plan: ``make_orbit_plan`` (radius 8 m,
