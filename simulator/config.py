@@ -49,8 +49,10 @@ class LimitsConfig:
     max_speed_up_m_s: float = 3.0  # MPC_Z_VEL_MAX_UP
     max_speed_down_m_s: float = 1.5  # MPC_Z_VEL_MAX_DN
     max_accel_xy_m_s2: float = 5.0  # MPC_ACC_HOR_MAX
+    #: horizontal acceleration of the auto modes' trajectories (takeoff, hold, return)
+    auto_accel_xy_m_s2: float = 3.0  # MPC_ACC_HOR
     max_accel_z_m_s2: float = 4.0  # MPC_ACC_UP_MAX
-    max_tilt_deg: float = 35.0  # MPC_TILTMAX_AIR
+    max_tilt_deg: float = 45.0  # MPC_TILTMAX_AIR
     max_yaw_rate_deg_s: float = 60.0  # MPC_YAWRAUTO_MAX
     #: first-order time constant of the attitude loop (how fast the real tilt follows the commanded tilt)
     attitude_time_constant_s: float = 0.08
@@ -60,15 +62,20 @@ class LimitsConfig:
 
 @dataclass
 class ControllerConfig:
-    """PX4-like cascaded position (P) -> velocity (PID) controller gains (MPC_XY_P, MPC_XY_VEL_P_ACC ...)."""
+    """PX4's cascaded position (P) -> velocity (PID, acceleration units) controller gains; defaults = PX4's
+    (the autopilot's parameters of the same meaning, named in the comments, override them at run time)."""
 
-    pos_xy_p: float = 0.95
-    pos_z_p: float = 1.0
-    vel_xy_p: float = 1.8
-    vel_xy_i: float = 1.0
-    vel_z_p: float = 4.0
-    vel_z_i: float = 2.0
-    yaw_p: float = 2.8
+    pos_xy_p: float = 0.95  # MPC_XY_P
+    pos_z_p: float = 1.0  # MPC_Z_P
+    vel_xy_p: float = 1.8  # MPC_XY_VEL_P_ACC
+    vel_xy_i: float = 0.4  # MPC_XY_VEL_I_ACC
+    vel_xy_d: float = 0.2  # MPC_XY_VEL_D_ACC
+    vel_z_p: float = 4.0  # MPC_Z_VEL_P_ACC
+    vel_z_i: float = 2.0  # MPC_Z_VEL_I_ACC
+    vel_z_d: float = 0.0  # MPC_Z_VEL_D_ACC
+    #: low-pass cut-off of the velocity derivative (D term)
+    vel_deriv_lp_hz: float = 5.0  # MPC_VELD_LP
+    yaw_p: float = 2.8  # MC_YAW_P
 
 
 @dataclass
@@ -156,14 +163,21 @@ class RatesConfig:
     gimbal_manager_status_hz: float = 5.0
 
 
+#: offboard-loss actions by name -> PX4 COM_OBL_RC_ACT value
+OFFBOARD_LOSS_ACTIONS = {"position": 0, "altitude": 1, "stabilized": 2, "return": 3, "land": 4, "hold": 5,
+                         "terminate": 6, "disarm": 7}
+
+
 @dataclass
 class FailsafeConfig:
     """PX4 commander behaviour (COM_* parameters)."""
 
     #: COM_OF_LOSS_T: offboard setpoints older than this -> failsafe
-    offboard_loss_timeout_s: float = 0.5
-    #: what to do on offboard loss: "hold" (Auto Loiter) or "land"
-    offboard_loss_action: str = "hold"
+    offboard_loss_timeout_s: float = 1.0
+    #: what to do on offboard loss (COM_OBL_RC_ACT): "position" (PX4's default 0: Position mode, which needs RC
+    #: this simulator has not, so Return), "altitude" (1) and "stabilized" (2) likewise Return, "return" (3),
+    #: "land" (4), "hold" (5), "terminate" (6) / "disarm" (7): motors off where it is
+    offboard_loss_action: str = "position"
     #: COM_DISARM_LAND: disarm this long after landing (<0 disables)
     disarm_after_land_s: float = 2.0
     #: COM_DISARM_PRFLT: disarm if armed on the ground without taking off for this long (<0 disables)
@@ -224,8 +238,12 @@ class SimConfig:
     physics_hz: float = 100.0
     #: default takeoff altitude (PX4 MIS_TAKEOFF_ALT), metres above home
     takeoff_alt_m: float = 2.5
-    #: Return climbs to at least this height above home first (PX4 RTL_RETURN_ALT; PX4's default is 30)
-    rtl_return_alt_m: float = 15.0
+    #: Return's highest return altitude above home (PX4 RTL_RETURN_ALT); nearer home the cone below lowers it
+    rtl_return_alt_m: float = 60.0
+    #: Return descends to this height above home before landing (PX4 RTL_DESCEND_ALT)
+    rtl_descend_alt_m: float = 30.0
+    #: half-angle of PX4's return-altitude cone over home (RTL_CONE_ANG; 0: always RTL_RETURN_ALT)
+    rtl_cone_half_angle_deg: float = 45.0
     #: horizontal speed of Return and goto (PX4 MPC_XY_CRUISE)
     cruise_speed_m_s: float = 5.0
 
@@ -243,10 +261,13 @@ class SimConfig:
                 raise ConfigError(f"vehicles.spawn_ne_m entry {p} must be [north_m, east_m]")
         if self.physics_hz < 50:
             raise ConfigError(f"physics_hz={self.physics_hz} is too low; use >= 100")
-        if self.failsafe.offboard_loss_action not in ("hold", "land"):
+        if self.failsafe.offboard_loss_action not in OFFBOARD_LOSS_ACTIONS:
             raise ConfigError(
-                f"failsafe.offboard_loss_action={self.failsafe.offboard_loss_action!r}; use 'hold' or 'land'"
+                f"failsafe.offboard_loss_action={self.failsafe.offboard_loss_action!r}; use one of "
+                f"{', '.join(repr(a) for a in OFFBOARD_LOSS_ACTIONS)} (PX4 COM_OBL_RC_ACT 0..7)"
             )
+        if not 0 <= self.rtl_cone_half_angle_deg <= 90:
+            raise ConfigError(f"rtl_cone_half_angle_deg={self.rtl_cone_half_angle_deg} must be in 0..90 (RTL_CONE_ANG)")
         self.gimbal.validate()
         if not 0 < self.limits.max_tilt_deg < 80:
             raise ConfigError(f"limits.max_tilt_deg={self.limits.max_tilt_deg} must be in (0, 80)")

@@ -12,14 +12,15 @@ Times are seconds since the simulation started (monotonic), passed in by the cal
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from simulator.config import SimConfig
-from simulator.vehicle.controller import ControllerLimits, PositionController, TrajectorySetpoint
+from simulator.config import OFFBOARD_LOSS_ACTIONS, SimConfig
+from simulator.vehicle.controller import AutoTrajectory, ControllerLimits, PositionController, TrajectorySetpoint
 from simulator.vehicle.dynamics import GRAVITY_M_S2, DynamicsLimits, MultirotorDynamics
 from simulator.vehicle.environment import Battery, EstimatorErrorModel
 from simulator.vehicle.gimbal import SimGimbal
@@ -34,8 +35,12 @@ ACCEPTED, TEMPORARILY_REJECTED, DENIED, UNSUPPORTED, FAILED = 0, 1, 2, 3, 4
 # MAV_LANDED_STATE
 LANDED_UNDEFINED, LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = 0, 1, 2, 3, 4
 FORCE_MAGIC = 21196.0
+#: an Offboard switch this soon before the takeoff completes is overridden by the takeoff's Hold (PX4: the
+#: navigator and the commander run asynchronously, ~10 Hz; a model of that race, not a measured figure)
+TAKEOFF_RACE_S = 0.1
 
-OFFBOARD_LOSS_ACTIONS = {"hold": 5, "land": 4}  # PX4 COM_OBL_RC_ACT values
+# PX4 COM_OBL_RC_ACT values
+OBL_POSITION, OBL_ALTITUDE, OBL_STABILIZED, OBL_RETURN, OBL_LAND, OBL_HOLD, OBL_TERMINATE, OBL_DISARM = range(8)
 
 
 @dataclass
@@ -71,30 +76,51 @@ class VehicleSnapshot:
 
 def default_params(cfg: SimConfig, system_id: int) -> list[Param]:
     """The PX4 parameters this simulator honours (names and units as PX4)."""
-    L, F = cfg.limits, cfg.failsafe
+    L, F, G = cfg.limits, cfg.failsafe, cfg.controller
     R, INT = MAV_PARAM_TYPE_REAL32, MAV_PARAM_TYPE_INT32
     return [
         Param("MIS_TAKEOFF_ALT", cfg.takeoff_alt_m, R),
+        Param("NAV_MC_ALT_RAD", 0.8, R),  # takeoff complete this far below its altitude
         Param("MPC_XY_VEL_MAX", L.max_speed_xy_m_s, R),
         Param("MPC_XY_CRUISE", cfg.cruise_speed_m_s, R),
         Param("MPC_Z_VEL_MAX_UP", L.max_speed_up_m_s, R),
         Param("MPC_Z_VEL_MAX_DN", L.max_speed_down_m_s, R),
+        Param("MPC_Z_V_AUTO_DN", min(1.5, L.max_speed_down_m_s), R),
         Param("MPC_ACC_HOR_MAX", L.max_accel_xy_m_s2, R),
+        Param("MPC_ACC_HOR", L.auto_accel_xy_m_s2, R),
         Param("MPC_ACC_UP_MAX", L.max_accel_z_m_s2, R),
         Param("MPC_TILTMAX_AIR", L.max_tilt_deg, R),
         Param("MPC_YAWRAUTO_MAX", L.max_yaw_rate_deg_s, R),
         Param("MPC_TKO_SPEED", min(1.5, L.max_speed_up_m_s), R),
         Param("MPC_LAND_SPEED", min(0.7, L.max_speed_down_m_s), R),
+        Param("MPC_LAND_ALT1", 10.0, R),
+        Param("MPC_LAND_ALT2", 5.0, R),
+        Param("MPC_XY_P", G.pos_xy_p, R),
+        Param("MPC_Z_P", G.pos_z_p, R),
+        Param("MPC_XY_VEL_P_ACC", G.vel_xy_p, R),
+        Param("MPC_XY_VEL_I_ACC", G.vel_xy_i, R),
+        Param("MPC_XY_VEL_D_ACC", G.vel_xy_d, R),
+        Param("MPC_Z_VEL_P_ACC", G.vel_z_p, R),
+        Param("MPC_Z_VEL_I_ACC", G.vel_z_i, R),
+        Param("MPC_Z_VEL_D_ACC", G.vel_z_d, R),
+        Param("MPC_VELD_LP", G.vel_deriv_lp_hz, R),
+        Param("MC_YAW_P", G.yaw_p, R),
         Param("RTL_RETURN_ALT", cfg.rtl_return_alt_m, R),
+        Param("RTL_DESCEND_ALT", cfg.rtl_descend_alt_m, R),
+        Param("RTL_CONE_ANG", int(round(cfg.rtl_cone_half_angle_deg)), INT),
         Param("COM_OF_LOSS_T", F.offboard_loss_timeout_s, R),
         Param("COM_OBL_RC_ACT", OFFBOARD_LOSS_ACTIONS[F.offboard_loss_action], INT),
         Param("COM_DISARM_LAND", F.disarm_after_land_s, R),
         Param("COM_DISARM_PRFLT", F.disarm_preflight_s, R),
+        # RC / data-link loss: accepted and reported like PX4 (this simulator has neither link to lose)
+        Param("NAV_RCL_ACT", 2, INT),
+        Param("NAV_DLL_ACT", 0, INT),
+        Param("COM_RCL_EXCEPT", 0, INT),
         Param("BAT_LOW_THR", cfg.battery.low_percent / 100.0, R),
         Param("BAT_CRIT_THR", cfg.battery.critical_percent / 100.0, R),
         Param("MAV_SYS_ID", system_id, INT),
         Param("SYS_AUTOSTART", 4001, INT),  # x500-class quadrotor airframe
-        Param("COM_RC_IN_MODE", 4, INT),  # RC not required (offboard/API only)
+        Param("COM_RC_IN_MODE", 3, INT),  # PX4's default; no RC is ever connected here
     ]
 
 
@@ -125,7 +151,9 @@ class SimVehicle:
             position_ned_m=spawn,
             yaw_rad=math.radians(cfg.vehicles.spawn_yaw_deg),
         )
-        self.ctrl = PositionController(ControllerLimits.from_config(L), cfg.controller)
+        # a copy: parameters change this vehicle's gains, not the shared config
+        self.ctrl = PositionController(ControllerLimits.from_config(L), dataclasses.replace(cfg.controller))
+        self.traj = AutoTrajectory(spawn)
         self.est_model = EstimatorErrorModel(
             cfg.estimator, seed=cfg.estimator.seed * 1000 + index if seed is None else seed
         )
@@ -136,6 +164,7 @@ class SimVehicle:
         self._apply_params()
 
         self.t_s = 0.0
+        self._dt_s = 1.0 / cfg.physics_hz
         self.armed = False
         self.mode = FlightMode.HOLD
         self.gps_ok = False
@@ -150,9 +179,15 @@ class SimVehicle:
         self._hold_speed_m_s = math.nan
         self._hold_yaw = math.nan
         self._takeoff_target: np.ndarray | None = None
+        #: when an Offboard switch left Takeoff: if the takeoff completes within TAKEOFF_RACE_S after it, PX4's
+        #: "takeoff complete" Hold wins over the switch
+        self._offboard_from_takeoff_t_s = -math.inf
         self._land_xy: np.ndarray | None = None
         self._rtl_phase = ""
         self._rtl_alt_d = 0.0
+        self._rtl_descend_d = 0.0
+        #: the current mode is the offboard-loss failsafe's: back to Offboard when setpoints resume (PX4)
+        self._offboard_failsafe = False
         self._offboard_sp: TrajectorySetpoint | None = None
         self._offboard_sp_t_s = -math.inf
         self._battery_failsafe_done = False
@@ -172,7 +207,13 @@ class SimVehicle:
 
     # ------------------------------------------------------------------ parameters
     def _apply_params(self) -> None:
-        p, lim = self.params, self.ctrl.limits
+        p, lim, g = self.params, self.ctrl.limits, self.ctrl.gains
+        g.pos_xy_p, g.pos_z_p = float(p["MPC_XY_P"]), float(p["MPC_Z_P"])
+        g.vel_xy_p, g.vel_xy_i, g.vel_xy_d = (float(p["MPC_XY_VEL_P_ACC"]), float(p["MPC_XY_VEL_I_ACC"]),
+                                              float(p["MPC_XY_VEL_D_ACC"]))
+        g.vel_z_p, g.vel_z_i, g.vel_z_d = (float(p["MPC_Z_VEL_P_ACC"]), float(p["MPC_Z_VEL_I_ACC"]),
+                                           float(p["MPC_Z_VEL_D_ACC"]))
+        g.vel_deriv_lp_hz, g.yaw_p = float(p["MPC_VELD_LP"]), float(p["MC_YAW_P"])
         lim.max_speed_xy_m_s = float(p["MPC_XY_VEL_MAX"])
         lim.max_speed_up_m_s = float(p["MPC_Z_VEL_MAX_UP"])
         lim.max_speed_down_m_s = float(p["MPC_Z_VEL_MAX_DN"])
@@ -236,8 +277,11 @@ class SimVehicle:
     def landed_state(self) -> int:
         if self.landed:
             return LANDED_ON_GROUND
-        if self.mode == FlightMode.TAKEOFF:
-            return LANDED_TAKEOFF
+        if self.mode == FlightMode.TAKEOFF and self._takeoff_target is not None:
+            # PX4's land detector says "in air" about half-way up the takeoff climb (1.4 of 2.5 m measured)
+            home_d = self.home_ned_m[2] if self.home_ned_m is not None else self.spawn_ned_m[2]
+            if home_d - self.est_position_ned_m[2] < 0.5 * (home_d - self._takeoff_target[2]):
+                return LANDED_TAKEOFF
         if self.mode == FlightMode.LAND or (self.mode == FlightMode.RETURN and self._rtl_phase == "land"):
             return LANDED_LANDING
         return LANDED_IN_AIR
@@ -253,6 +297,14 @@ class SimVehicle:
             del self.status_texts[:100]
 
     # ------------------------------------------------------------------ commands (return MAV_RESULT)
+    @property
+    def prearm_ok(self) -> bool:
+        """PX4's pre-arm checks as the SYS_STATUS PREARM bit reports them (MAVSDK ``is_armable``): GPS fix, battery,
+        and in Offboard a live offboard signal -- e.g. a vehicle that landed from Offboard stays in Offboard and
+        is not armable until setpoints stream again or another mode is set (measured on PX4)."""
+        return (self.gps_ok and not self._battery_critical()
+                and not (self.mode == FlightMode.OFFBOARD and not self.offboard_setpoint_fresh()))
+
     def cmd_arm(self, arm: bool, force: bool = False) -> int:
         if arm:
             if self.armed:
@@ -273,6 +325,8 @@ class SimVehicle:
             self._landed_since_s = self.t_s if self.landed else None
             self.home_ned_m = self.est_position_ned_m.copy()  # PX4 sets home on arming
             self.ctrl.reset()
+            self.traj.reset(self.est_position_ned_m)
+            self._hold_target = None
             self._say(6, "Armed")
             return ACCEPTED
         if not self.armed:
@@ -287,10 +341,15 @@ class SimVehicle:
         self.armed = False
         self._say(6, why)
 
+    def _commanded(self) -> None:
+        """A mode was commanded (not chosen by a failsafe): the offboard-loss failsafe no longer owns the mode."""
+        self._offboard_failsafe = False
+
     def cmd_takeoff(self, altitude_amsl_m: float = math.nan) -> int:
         if not self.armed:
             self._say(4, "Takeoff denied: disarmed")
             return TEMPORARILY_REJECTED
+        self._commanded()
         home_d = self.home_ned_m[2] if self.home_ned_m is not None else self.est_position_ned_m[2]
         target_d = home_d - float(self.params["MIS_TAKEOFF_ALT"])
         if math.isfinite(altitude_amsl_m):
@@ -306,6 +365,7 @@ class SimVehicle:
         return ACCEPTED
 
     def cmd_land(self) -> int:
+        self._commanded()
         self._set_mode(FlightMode.LAND)
         return ACCEPTED
 
@@ -314,10 +374,12 @@ class SimVehicle:
             return TEMPORARILY_REJECTED
         if not self.armed or self.landed:
             return TEMPORARILY_REJECTED
+        self._commanded()
         self._set_mode(FlightMode.RETURN)
         return ACCEPTED
 
     def cmd_hold(self) -> int:
+        self._commanded()
         self._set_mode(FlightMode.HOLD)
         return ACCEPTED
 
@@ -329,6 +391,7 @@ class SimVehicle:
         if fm is None:
             return UNSUPPORTED
         if fm == self.mode:
+            self._commanded()
             return ACCEPTED
         if fm == FlightMode.HOLD:
             return self.cmd_hold()
@@ -342,6 +405,9 @@ class SimVehicle:
             if not self.offboard_setpoint_fresh():
                 self._say(4, "Switching to Offboard is currently not available: no offboard signal")
                 return TEMPORARILY_REJECTED
+            self._commanded()
+            if self.mode == FlightMode.TAKEOFF:
+                self._offboard_from_takeoff_t_s = self.t_s
             self._set_mode(FlightMode.OFFBOARD)
             return ACCEPTED
         if fm == FlightMode.MISSION:
@@ -355,6 +421,7 @@ class SimVehicle:
         """MAV_CMD_DO_REPOSITION (MAVSDK goto_location): fly to a point and hold there. NaN = keep."""
         if not self.armed or self.landed:
             return TEMPORARILY_REJECTED
+        self._commanded()
         target = self.est_position_ned_m.copy() if self._hold_target is None else self._hold_target.copy()
         for k in range(3):
             if math.isfinite(world_ned_m[k]):
@@ -386,19 +453,38 @@ class SimVehicle:
         self._hold_yaw = self.est_yaw_rad
         p = self.est_position_ned_m
         v = self.est_velocity_ned_m_s
+        if prev in (FlightMode.OFFBOARD, FlightMode.LAND) or not self.armed:
+            # the auto trajectory starts from where the vehicle is (an auto mode before it: continue smoothly)
+            self.traj.reset(p, v)
         if mode == FlightMode.HOLD:
             # brake to a stop, then hold where it stopped (PX4 computes a braking point too)
-            a = max(float(self.params["MPC_ACC_HOR_MAX"]) * 0.8, 0.5)
-            self._hold_target = p + v * np.abs(v) / (2.0 * a) * np.array([1.0, 1.0, 0.0])
+            a = max(float(self.params["MPC_ACC_HOR"]) * 0.8, 0.5)
+            vt = self.traj.velocity_ned_m_s
+            self._hold_target = self.traj.position_ned_m + vt * np.abs(vt) / (2.0 * a) * np.array([1.0, 1.0, 0.0])
             self._hold_speed_m_s = math.nan
             self._hold_yaw = self.est_yaw_rad
         elif mode == FlightMode.LAND:
             self._land_xy = p[:2].copy()
         elif mode == FlightMode.RETURN:
             self._rtl_phase = "climb"
-            self._rtl_alt_d = min(p[2], self.home_ned_m[2] - float(self.params["RTL_RETURN_ALT"]))
+            self._rtl_alt_d, self._rtl_descend_d = self._rtl_altitudes_d(p)
         if prev != mode:
             log.info("vehicle %d: mode %s -> %s", self.system_id, prev.name, mode.name)
+
+    def _rtl_altitudes_d(self, p: np.ndarray) -> tuple[float, float]:
+        """(return altitude, descend altitude) as world down coordinates, as PX4's RTL computes them: the return
+        altitude is RTL_RETURN_ALT above home, lowered near home to the cone RTL_CONE_ANG over home (at 8 m from
+        home: ~8 m with the default 45 deg, measured on PX4), never below the current altitude; then descend to
+        RTL_DESCEND_ALT above home if higher, then land."""
+        P, home = self.params, self.home_ned_m
+        ret_h = float(P["RTL_RETURN_ALT"])
+        cone = float(P["RTL_CONE_ANG"])
+        if 0.0 < cone < 90.0:
+            dist = math.hypot(p[0] - home[0], p[1] - home[1])
+            ret_h = min(ret_h, dist / math.tan(math.radians(cone)))
+        ret_d = min(p[2], home[2] - ret_h)
+        descend_d = max(ret_d, home[2] - float(P["RTL_DESCEND_ALT"]))
+        return ret_d, descend_d
 
     def _battery_critical(self) -> bool:
         thr = float(self.params["BAT_CRIT_THR"]) * 100.0
@@ -408,6 +494,7 @@ class SimVehicle:
     def step(self, t_s: float, dt_s: float, wind_ned_m_s: np.ndarray) -> None:
         """Advance to ``t_s`` (seconds since start) by ``dt_s``: estimator, commander, controller, physics."""
         self.t_s = t_s
+        self._dt_s = dt_s
         self.est_model.step(dt_s)
         while self._gps_jumps and self._gps_jumps[0][0] <= t_s:
             _, off = self._gps_jumps.pop(0)
@@ -424,7 +511,8 @@ class SimVehicle:
         self._commander(t_s)
         sp = self._mode_setpoint()
         body_z, thrust, yaw_rate = self.ctrl.update(
-            dt_s, sp, self.est_position_ned_m, self.est_velocity_ned_m_s, self.est_yaw_rad, self.landed
+            dt_s, sp, self.est_position_ned_m, self.est_velocity_ned_m_s, self.est_yaw_rad, self.landed,
+            accel_ned_m_s2=self.dyn.state.accel_ned_m_s2,
         )
         if self.armed and self.landed and self._wants_ground(sp):
             thrust = min(thrust, 0.5 * GRAVITY_M_S2)  # idle on the ground
@@ -444,6 +532,12 @@ class SimVehicle:
 
     def _commander(self, t_s: float) -> None:
         landed = self.landed
+        # back to Offboard when setpoints resume after an offboard-loss failsafe (PX4: the user's intended mode is
+        # still Offboard; it returns even disarmed, as measured)
+        if self._offboard_failsafe and self.offboard_setpoint_fresh():
+            self._offboard_failsafe = False
+            self._say(6, "Offboard signal regained, back to Offboard")
+            self._set_mode(FlightMode.OFFBOARD)
         if not self.armed:
             self._landed_since_s = t_s if landed else None
             return
@@ -467,11 +561,18 @@ class SimVehicle:
             ):
                 self._disarm("Disarmed by auto preflight disarming")
                 return
+        if (self.mode == FlightMode.OFFBOARD and t_s - self._offboard_from_takeoff_t_s <= TAKEOFF_RACE_S
+                and self._takeoff_reached()):
+            # PX4: the navigator's "takeoff complete -> Hold" of (nearly) the same instant overrides the request
+            self._offboard_from_takeoff_t_s = -math.inf
+            self._say(6, "Takeoff complete")
+            self._set_mode(FlightMode.HOLD)
+            self._hold_target = self._takeoff_target.copy()
         # offboard loss failsafe (COM_OF_LOSS_T, then COM_OBL_RC_ACT)
         if self.mode == FlightMode.OFFBOARD and not self.offboard_setpoint_fresh():
-            act = int(self.params["COM_OBL_RC_ACT"])
-            self._say(4, "Failsafe: no offboard signal")
-            self._set_mode(FlightMode.LAND if act == 4 else FlightMode.HOLD)
+            self._offboard_loss_failsafe(landed)
+            if not self.armed:
+                return
         # battery failsafe: warn at BAT_LOW_THR, return (or land without home) at BAT_CRIT_THR
         low = float(self.params["BAT_LOW_THR"]) * 100.0
         if not self._battery_low_warned and low > 0 and self.battery.remaining_pct <= low:
@@ -479,11 +580,68 @@ class SimVehicle:
             self._say(4, f"Low battery: {self.battery.remaining_pct:.0f}% remaining")
         if not self._battery_failsafe_done and self._battery_critical() and not landed:
             self._battery_failsafe_done = True
+            self._offboard_failsafe = False
             self._say(2, "Failsafe: battery critical, returning")
             if self.home_ned_m is not None:
                 self._set_mode(FlightMode.RETURN)
             else:
                 self._set_mode(FlightMode.LAND)
+
+    def _offboard_loss_failsafe(self, landed: bool) -> None:
+        """COM_OBL_RC_ACT: 0..2 (Position/Altitude/Stabilized: need RC, which this simulator never has, so PX4
+        falls back to Return) and 3 Return, 4 Land, 5 Hold, 6 Terminate / 7 Disarm (motors off)."""
+        act = int(self.params["COM_OBL_RC_ACT"])
+        if act in (OBL_TERMINATE, OBL_DISARM):
+            self._say(2, "Failsafe: no offboard signal, " + ("terminating" if act == OBL_TERMINATE else "disarming"))
+            self._disarm("Disarmed by failsafe")
+            return
+        if act == OBL_HOLD:
+            mode, what = FlightMode.HOLD, "holding"
+        elif act == OBL_LAND or landed or self.home_ned_m is None:
+            mode, what = FlightMode.LAND, "landing"
+        else:  # 0..3 and unknown values: Return, as PX4 without RC
+            mode, what = FlightMode.RETURN, "returning"
+        self._say(4, f"Failsafe: no offboard signal, {what}")
+        self._set_mode(mode)
+        self._offboard_failsafe = True
+
+    def _takeoff_reached(self) -> bool:
+        """PX4's navigator: takeoff complete once within NAV_MC_ALT_RAD below the takeoff altitude."""
+        tgt = self._takeoff_target
+        return tgt is not None and self.est_position_ned_m[2] <= tgt[2] + float(self.params["NAV_MC_ALT_RAD"])
+
+    def _auto(self, target: np.ndarray, max_speed_xy_m_s: float = math.nan,
+              max_speed_up_m_s: float = math.nan) -> TrajectorySetpoint:
+        """The auto modes' smoothed setpoint towards ``target`` (world NED) within PX4's auto limits."""
+        P, lim = self.params, self.ctrl.limits
+        vxy = float(P["MPC_XY_CRUISE"]) if math.isnan(max_speed_xy_m_s) else max_speed_xy_m_s
+        vup = lim.max_speed_up_m_s if math.isnan(max_speed_up_m_s) else max_speed_up_m_s
+        sp = self.traj.step(self._dt_s, target, min(vxy, lim.max_speed_xy_m_s), vup,
+                            float(P["MPC_Z_V_AUTO_DN"]), float(P["MPC_ACC_HOR"]), lim.max_accel_z_m_s2)
+        sp.yaw_rad = self._hold_yaw_or_current()
+        return sp
+
+    def _land_speed_m_s(self, p: np.ndarray) -> float:
+        """PX4's land descent rate: MPC_Z_V_AUTO_DN above MPC_LAND_ALT1, MPC_LAND_SPEED below MPC_LAND_ALT2,
+        linear in between (heights above home)."""
+        P = self.params
+        h = (self.home_ned_m[2] if self.home_ned_m is not None else 0.0) - p[2]
+        v_fast, v_slow = float(P["MPC_Z_V_AUTO_DN"]), float(P["MPC_LAND_SPEED"])
+        a1, a2 = float(P["MPC_LAND_ALT1"]), float(P["MPC_LAND_ALT2"])
+        if h >= a1 or a1 <= a2:
+            return v_fast if h >= a1 else v_slow
+        if h <= a2:
+            return v_slow
+        return v_slow + (v_fast - v_slow) * (h - a2) / (a1 - a2)
+
+    def _land_setpoint(self, xy: np.ndarray) -> TrajectorySetpoint:
+        p = self.est_position_ned_m
+        sp = self._auto(np.array([xy[0], xy[1], p[2]]))
+        sp.position_ned_m[2] = np.nan
+        sp.velocity_ned_m_s[2] = self._land_speed_m_s(p)
+        sp.accel_ned_m_s2[2] = np.nan
+        self.traj.position_ned_m[2], self.traj.velocity_ned_m_s[2] = p[2], sp.velocity_ned_m_s[2]
+        return sp
 
     def _mode_setpoint(self) -> TrajectorySetpoint:
         p = self.est_position_ned_m
@@ -492,62 +650,43 @@ class SimVehicle:
             return TrajectorySetpoint()
         m = self.mode
         if m == FlightMode.OFFBOARD and self._offboard_sp is not None:
-            return self._offboard_sp
+            return self._offboard_sp  # straight to the position controller, as PX4 offboard
         if m == FlightMode.TAKEOFF and self._takeoff_target is not None:
             tgt = self._takeoff_target
-            if abs(p[2] - tgt[2]) < 0.15:
+            if self._takeoff_reached():
                 self._say(6, "Takeoff complete")
                 self._set_mode(FlightMode.HOLD)
-                self._hold_target = tgt.copy()
+                self._hold_target = tgt.copy()  # Hold goes on to the takeoff altitude
                 return self._mode_setpoint()
-            return TrajectorySetpoint(
-                position_ned_m=tgt.copy(),
-                yaw_rad=self._hold_yaw_or_current(),
-                max_speed_up_m_s=float(P["MPC_TKO_SPEED"]),
-            )
+            return self._auto(tgt, max_speed_up_m_s=float(P["MPC_TKO_SPEED"]))
         if m == FlightMode.LAND:
-            xy = self._land_xy if self._land_xy is not None else p[:2]
-            return TrajectorySetpoint(
-                position_ned_m=np.array([xy[0], xy[1], np.nan]),
-                velocity_ned_m_s=np.array([np.nan, np.nan, float(P["MPC_LAND_SPEED"])]),
-                yaw_rad=self._hold_yaw_or_current(),
-            )
+            return self._land_setpoint(self._land_xy if self._land_xy is not None else p[:2])
         if m == FlightMode.RETURN and self.home_ned_m is not None:
             home = self.home_ned_m
-            cruise = float(P["MPC_XY_CRUISE"])
             if self._rtl_phase == "climb":
                 if p[2] <= self._rtl_alt_d + 0.3:
                     self._rtl_phase = "return"
-                return TrajectorySetpoint(
-                    position_ned_m=np.array([p[0], p[1], self._rtl_alt_d])
-                    if self._rtl_phase == "climb"
-                    else np.array([home[0], home[1], self._rtl_alt_d]),
-                    max_speed_xy_m_s=cruise,
-                    yaw_rad=self._hold_yaw_or_current(),
-                )
+                else:
+                    return self._auto(np.array([self.traj.position_ned_m[0], self.traj.position_ned_m[1],
+                                                self._rtl_alt_d]))
             if self._rtl_phase == "return":
                 if math.hypot(p[0] - home[0], p[1] - home[1]) < 0.5:
+                    self._rtl_phase = "descend"
+                else:
+                    return self._auto(np.array([home[0], home[1], self._rtl_alt_d]))
+            if self._rtl_phase == "descend":
+                if p[2] >= self._rtl_descend_d - 0.3:
                     self._rtl_phase = "land"
-                return TrajectorySetpoint(
-                    position_ned_m=np.array([home[0], home[1], self._rtl_alt_d]),
-                    max_speed_xy_m_s=cruise,
-                    yaw_rad=self._hold_yaw_or_current(),
-                )
-            return TrajectorySetpoint(
-                position_ned_m=np.array([home[0], home[1], np.nan]),
-                velocity_ned_m_s=np.array([np.nan, np.nan, float(P["MPC_LAND_SPEED"])]),
-                yaw_rad=self._hold_yaw_or_current(),
-            )
+                else:
+                    return self._auto(np.array([home[0], home[1], self._rtl_descend_d]))
+            return self._land_setpoint(home[:2])
         # HOLD (and any other mode): hold a point; on the ground stay there
         if self.landed and (self._hold_target is None or self._hold_target[2] >= p[2] - 0.2):
+            self.traj.reset(p)
             return TrajectorySetpoint(velocity_ned_m_s=np.array([0.0, 0.0, 0.5]))
         if self._hold_target is None:
             self._hold_target = p.copy()
-        return TrajectorySetpoint(
-            position_ned_m=self._hold_target.copy(),
-            yaw_rad=self._hold_yaw_or_current(),
-            max_speed_xy_m_s=self._hold_speed_m_s,
-        )
+        return self._auto(self._hold_target, max_speed_xy_m_s=self._hold_speed_m_s)
 
     def _hold_yaw_or_current(self) -> float:
         if math.isnan(self._hold_yaw):

@@ -238,7 +238,7 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
             health = SENSORS_PRESENT
             if not v.gps_ok:
                 health &= ~(M.MAV_SYS_STATUS_SENSOR_GPS | M.MAV_SYS_STATUS_PREARM_CHECK)
-            if v._battery_critical():
+            if not v.prearm_ok:  # battery critical, or disarmed in Offboard (until a mode change)
                 health &= ~M.MAV_SYS_STATUS_PREARM_CHECK
             b = v.battery
             msg = mav.sys_status_encode(

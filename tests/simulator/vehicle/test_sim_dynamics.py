@@ -39,19 +39,31 @@ def fly(dyn, ctrl, sp, seconds, wind=None, log=None):
 
 
 def test_limits_on_a_long_leg_climb_descent_and_yaw():
+    # a far position setpoint straight to the controller (PX4 offboard: no trajectory smoothing): the velocity
+    # *setpoint* is held to MPC_XY_VEL_MAX / MPC_Z_VEL_MAX_UP / _DN; the velocity loop may overshoot it briefly
     dyn, ctrl = make()
-    log = []
+    log, vsp = [], []
+    orig_update = ctrl.update
+
+    def update(*a, **k):
+        out = orig_update(*a, **k)
+        vsp.append(ctrl.velocity_setpoint_ned_m_s.copy())
+        return out
+
+    ctrl.update = update
     fly(dyn, ctrl, TrajectorySetpoint(position_ned_m=np.array([250.0, 0.0, -40.0]), yaw_rad=math.pi), 40.0, log=log)
     fly(dyn, ctrl, TrajectorySetpoint(position_ned_m=np.array([250.0, 0.0, -5.0]), yaw_rad=math.pi), 30.0, log=log)
     pos, vel, acc, R, yaw = (np.array([e[i] for e in log]) for i in range(5))
+    vsp = np.array(vsp)
+    assert np.hypot(vsp[:, 0], vsp[:, 1]).max() == pytest.approx(12.0)
+    assert (-vsp[:, 2]).max() == pytest.approx(3.0) and vsp[:, 2].max() == pytest.approx(1.5)
     speed_xy = np.hypot(vel[:, 0], vel[:, 1])
     tilt_deg = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
     yaw_rate = np.abs(np.diff(np.unwrap(yaw))) / DT
-    assert 11.0 < speed_xy.max() <= 12.0 * 1.03  # the horizontal limit is reached, not exceeded
-    assert (-vel[:, 2]).max() <= 3.0 * 1.05 and (-vel[:, 2]).max() > 2.8  # climb limit
-    assert vel[:, 2].max() <= 1.5 * 1.08 and vel[:, 2].max() > 1.3  # descent limit
+    assert 11.0 < speed_xy.max() <= 12.0 * 1.05  # the horizontal limit is reached, hardly exceeded
+    assert 2.8 < (-vel[:, 2]).max() <= 3.0 * 1.2  # climb limit (+ the velocity loop's overshoot)
+    assert 1.3 < vel[:, 2].max() <= 1.5 * 1.2  # descent limit
     assert tilt_deg.max() <= 35.0 * 1.05 + 0.1
-    assert np.hypot(acc[:, 0], acc[:, 1]).max() < 6.5  # ~5 m/s^2 trajectory limit (+ drag, tracking)
     assert np.degrees(yaw_rate.max()) <= 60.0 * 1.02
     assert np.linalg.norm(pos[-1] - [250.0, 0.0, -5.0]) < 0.2
 

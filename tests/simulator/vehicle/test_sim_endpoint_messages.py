@@ -211,3 +211,41 @@ def test_requests_params_and_unsupported():
     r.feed(r.client.command_long_encode(1, 100, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
     r.feed(r.client.command_long_encode(7, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
     assert r.out.msgs == [] and not r.v.armed  # other component / other system: not for us
+
+
+def test_home_is_the_ground_at_the_spawn_and_relative_altitude_is_above_it():
+    r = Rig(vehicles__spawn_ne_m=[[4.0, -2.0]])
+    fast_forward(r.v, 1.2)
+    o = r.cfg.origin
+    r.out.msgs.clear()
+    assert r.ep.send_stream("HOME_POSITION") and r.ep.send_stream("GLOBAL_POSITION_INT")
+    home = next(m for m in r.out.msgs if m.get_type() == "HOME_POSITION")
+    lat, lon, alt = ned_to_geodetic(np.array([4.0, -2.0, 0.0]), o.lat_deg, o.lon_deg, o.alt_m)
+    # the ground at the spawn (within the estimator's 2 cm noise; 1e-7 deg ~ 1.1 cm)
+    assert home.latitude == pytest.approx(float(lat) * 1e7, abs=10)
+    assert home.longitude == pytest.approx(float(lon) * 1e7, abs=15)
+    assert home.altitude == pytest.approx(o.alt_m * 1000, abs=100)
+    assert (home.x, home.y) == pytest.approx((0.0, 0.0), abs=0.05)  # local frame: the EKF origin is the spawn
+    gp = next(m for m in r.out.msgs if m.get_type() == "GLOBAL_POSITION_INT")
+    assert abs(gp.relative_alt) < 100
+    r.takeoff()  # MIS_TAKEOFF_ALT 2.5 m above home (set again at arming)
+    r.out.msgs.clear()
+    r.ep.send_stream("GLOBAL_POSITION_INT")
+    gp = next(m for m in r.out.msgs if m.get_type() == "GLOBAL_POSITION_INT")
+    assert gp.relative_alt == pytest.approx(2500, abs=150)
+    assert gp.alt - gp.relative_alt == pytest.approx(o.alt_m * 1000, abs=100)
+
+
+def test_sys_status_prearm_clear_in_offboard_without_setpoints():
+    r = Rig()
+    fast_forward(r.v, 1.2)
+    r.v._set_mode(FlightMode.OFFBOARD)  # e.g. landed and disarmed from Offboard, the agent no longer streaming
+    r.out.msgs.clear()
+    r.ep.send_stream("SYS_STATUS")
+    st = next(m for m in r.out.msgs if m.get_type() == "SYS_STATUS")
+    assert not st.onboard_control_sensors_health & M.MAV_SYS_STATUS_PREARM_CHECK
+    assert r.command(M.MAV_CMD_DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MainMode.AUTO, 3) == M.MAV_RESULT_ACCEPTED
+    r.out.msgs.clear()
+    r.ep.send_stream("SYS_STATUS")
+    st = next(m for m in r.out.msgs if m.get_type() == "SYS_STATUS")
+    assert st.onboard_control_sensors_health & M.MAV_SYS_STATUS_PREARM_CHECK

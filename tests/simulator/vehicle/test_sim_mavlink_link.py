@@ -181,7 +181,7 @@ def test_offboard_refused_without_setpoints_and_dropped_when_they_stop(two_vehic
     c = clients[0]
     c.wait("HEARTBEAT")
     c.wait("SYS_STATUS", 4.0, lambda m: m.onboard_control_sensors_health & M.MAV_SYS_STATUS_PREARM_CHECK)
-    # COM_OF_LOSS_T 0.5 -> 1.0 s: the setpoint thread shares the GIL with the simulator in this process
+    # COM_OF_LOSS_T 1.0 s (PX4's default; set as the agent does)
     c.send(c.mav.param_set_encode(1, 1, b"COM_OF_LOSS_T", 1.0, M.MAV_PARAM_TYPE_REAL32))
     c.wait("PARAM_VALUE", pred=lambda m: m.param_id == "COM_OF_LOSS_T" and m.param_value == 1.0)
     offboard = (M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MainMode.OFFBOARD, 0)
@@ -213,11 +213,11 @@ def test_offboard_refused_without_setpoints_and_dropped_when_they_stop(two_vehic
         stop.set()
         th.join()
     t_stop = time.monotonic()
-    # PX4: no setpoint for COM_OF_LOSS_T -> failsafe to Hold; STATUSTEXT tells why
+    # PX4: no setpoint for COM_OF_LOSS_T -> failsafe; COM_OBL_RC_ACT 0 without RC = Return; STATUSTEXT tells why
     txt = c.wait("STATUSTEXT", 4.0, lambda m: "failsafe" in m.text.lower())
     assert 0.9 < time.monotonic() - t_stop < 3.0
     assert "no offboard signal" in txt.text
-    assert _mode(c) == (MainMode.AUTO, AutoSubMode.LOITER)
+    assert _mode(c) == (MainMode.AUTO, AutoSubMode.RTL)
     ack = c.command(1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
     assert ack == M.MAV_RESULT_DENIED  # in the air
     assert c.command(1, M.MAV_CMD_NAV_LAND) == M.MAV_RESULT_ACCEPTED
