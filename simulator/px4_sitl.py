@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -159,9 +160,7 @@ class Px4Sitl:
             (bindir / "px4-alias.sh").write_bytes(alias.read_bytes())
         for k in range(self.n):
             d = self.instance_dir(k)
-            if d.exists():
-                for f in sorted(d.rglob("*"), reverse=True):
-                    f.unlink() if not f.is_dir() or f.is_symlink() else f.rmdir()
+            shutil.rmtree(d, ignore_errors=True)
             d.mkdir(parents=True, exist_ok=True)
             env = dict(os.environ, PX4_SYS_AUTOSTART=str(PX4_SIH_AIRFRAME), PX4_SIMULATOR="sihsim",
                        PX4_SIM_MODEL="sihsim_quadx")

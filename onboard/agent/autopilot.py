@@ -174,8 +174,7 @@ class MavsdkAutopilot:
                 put(battery_voltage_v=v.voltage_v)
 
         def position(v):
-            put(latitude_deg=v.latitude_deg, longitude_deg=v.longitude_deg, altitude_amsl_m=v.absolute_altitude_m,
-                height_above_home_m=float(getattr(v, "relative_altitude_m", math.nan)))
+            put(latitude_deg=v.latitude_deg, longitude_deg=v.longitude_deg, altitude_amsl_m=v.absolute_altitude_m)
 
         def gps(v):
             put(gps_fix_type=int(v.fix_type), gps_num_satellites=int(v.num_satellites))
@@ -292,19 +291,15 @@ class MavsdkAutopilot:
             self.on_state(st)
 
     async def wait_healthy(self, timeout_s: float) -> None:
-        """Wait for the pre-arm conditions (global position, home, armable, a world position). A vehicle on the
-        ground that reports position and home but is not armable while in OFFBOARD (PX4 after landing from
-        offboard) is put in HOLD first, once."""
+        """Wait for the pre-arm conditions (global position, home, armable, a world position). A vehicle that
+        :meth:`landed_in_offboard` and is not armable is put in HOLD first, once (:meth:`release_offboard`)."""
         t_end = time.monotonic() + timeout_s
         held = False
         while not (self.telemetry.health_ok and self.telemetry.position_ned_m is not None):
             T = self.telemetry
-            if (not held and not T.armable and T.global_position_ok and T.home_position_ok and not T.in_air
-                    and T.flight_mode == "OFFBOARD"):
+            if not held and not T.armable and self.landed_in_offboard():
                 held = True
-                log.info("%s: on the ground in OFFBOARD and not armable (landed from offboard): setting HOLD first",
-                         self.drone_id)
-                await self._do("hold", self.action.hold())
+                await self.release_offboard()
             if time.monotonic() > t_end:
                 why = [n for n, ok in (("global position", T.global_position_ok), ("home position", T.home_position_ok),
                                        ("armable", T.armable), ("world position", T.position_ned_m is not None)) if not ok]

@@ -434,7 +434,7 @@ class Agent:
         """A vehicle landed (or found at connect) disarmed in OFFBOARD is put in HOLD (every 5 s at most) so that it
         reports armable again: the operator's pre-flight checks and the next take-off need it."""
         ap = self.autopilot
-        if not getattr(ap, "landed_in_offboard", lambda: False)() or now - self._t_release_s < 5.0:
+        if not ap.landed_in_offboard() or now - self._t_release_s < 5.0:
             return
         self._t_release_s = now
 
@@ -458,16 +458,11 @@ class Agent:
         self.source = None
 
     def _setpoint_gap_s(self, window_s: float = 5.0) -> float:
-        """The longest gap (s) between two setpoints sent (or since the last one) in the last ``window_s``."""
+        """The longest gap (s) between two setpoints sent, or since the last one, among the gaps that end in the
+        last ``window_s``; 0 before the first setpoint."""
         now = time.monotonic()
-        ts = [t for t in self._sp_times if now - t <= window_s]
-        if not ts:
-            return window_s if self._sp_times else 0.0
-        gaps = [b - a for a, b in zip(ts, ts[1:])] + [now - ts[-1]]
-        if len(ts) < len(self._sp_times):  # the gap that ended at the window's first setpoint
-            older = [t for t in self._sp_times if now - t > window_s]
-            gaps.append(ts[0] - older[-1])
-        return max(gaps)
+        ts = [*self._sp_times, now]
+        return max((b - a for a, b in zip(ts, ts[1:]) if now - b <= window_s), default=0.0)
 
     def _resume_offboard(self) -> None:
         ap = self.autopilot

@@ -110,9 +110,8 @@ class VehicleSupervisor:
         resume or follow by ``autopilot.on_failsafe`` (see the module doc)."""
         ap = self.autopilot
         now = time.monotonic()
-        changes = list(getattr(ap, "mode_changes", ()))
-        if changes:
-            ap.mode_changes.clear()
+        changes = list(ap.mode_changes)
+        ap.mode_changes.clear()
         if not ap.offboard_active or now - ap.offboard_since_s < 2.0:
             self._takeover = None
             self._stalled = False

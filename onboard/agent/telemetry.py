@@ -50,9 +50,6 @@ class Telemetry:
     #: the receiver's position uncertainty (1 sigma, RAW_GPS); NaN when not reported
     horizontal_accuracy_m: float = _NAN
     vertical_accuracy_m: float = _NAN
-    #: height above the autopilot's home as MAVSDK reports it (``Position.relative_altitude_m``; for information:
-    #: world heights come from the local estimate, see :mod:`onboard.agent.autopilot`), NaN until reported
-    height_above_home_m: float = _NAN
     #: global position, home position and armable all OK
     health_ok: bool = False
     #: the parts of ``health_ok`` (MAVSDK ``Health``)

@@ -55,6 +55,7 @@ class FakeAutopilot:
         self.telemetry = Telemetry(armed=True, in_air=True, flight_mode="OFFBOARD", landed_state="in_air",
                                    position_ned_m=(8.0, 0.0, -6.0), health_ok=True)
         self.on_state = None
+        self.mode_changes: list = []
 
 
 def _state(d: str, pos, t_ns: int | None = None, vel=(0.0, 0.0, 0.0), landed="in_air", cov=(1.0, 1.0, 1.0)):
