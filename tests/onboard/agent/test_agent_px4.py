@@ -42,10 +42,7 @@ def px4(tmp_path_factory):
 
 
 def _start(f: Px4Flight, *extra: str) -> None:
-    for p in f.procs.values():
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait(5)
+    f.kill_agents()
     f.procs.clear()
     f.fleet.healths.clear()
     f.fleet.states.clear()
