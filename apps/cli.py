@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "flightdata.flightlog",
     "onboard.detector.cli",
     "groundstation.cli",
+    "comms.cli",
     "reconstruction.cli",
     "reconstruction.keypoints.cli",
     "apps.refine",
