@@ -63,8 +63,10 @@ import logging
 import math
 import os
 import signal
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -73,6 +75,7 @@ import msgspec
 
 from apps.supervisor import ProcessSupervisor
 from comms.faults import MalformedDetectionsInjector
+from comms.security import FleetKeys
 from comms.transport import Transport, TransportConfig
 from evaluation.flight import (format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
                                summarize_tracking)
@@ -158,8 +161,15 @@ class DemoConfig:
     #: the flight folder; empty: a new ``flights/demo-<UTC date>-<time>`` (an existing flight is never overwritten)
     out: str = ""
     fleet: str = "demo"
-    #: Zenoh rendezvous endpoint opened by this launcher
+    #: Zenoh rendezvous endpoint opened by this launcher; secure (the default), its protocol becomes ``tls``
     zenoh_endpoint: str = "tcp/127.0.0.1:7447"
+    #: plaintext Zenoh with no authentication or access control (``--insecure``): for debugging only; logged
+    #: loudly and written into ``summary.json`` (``security``)
+    insecure: bool = False
+    #: the fleet folder (``skycap keys``) whose certificates the processes present; empty: a new fleet CA and
+    #: one certificate per drone, the simulator and this launcher (the ground station) in a temporary folder,
+    #: deleted at the end (private keys never go into the flight folder)
+    keys_dir: str = ""
     #: first MAVLink port (vehicle i sends to mavlink_base + i; its agent listens there)
     mavlink_base: int = 14540
     orbit: OrbitDemoConfig = field(default_factory=OrbitDemoConfig)
@@ -263,6 +273,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--px4-dir", default=None, help="the PX4 SITL build for --autopilot px4 (default ../shared/px4-sitl)")
     p.add_argument("--sorties", type=int, default=None,
                    help="take off, orbit and land this many times without restarting anything (default 1)")
+    p.add_argument("--insecure", action="store_true", default=None,
+                   help="DEBUGGING ONLY: plaintext Zenoh, no certificates, no access control")
     add_config_args(p)
     p.set_defaults(func=_run)
 
@@ -272,7 +284,8 @@ def _run(args: argparse.Namespace) -> int:
                                                 "mode": getattr(args, "mode", None),
                                                 "autopilot": getattr(args, "autopilot", None),
                                                 "px4_dir": getattr(args, "px4_dir", None),
-                                                "sorties": getattr(args, "sorties", None)})
+                                                "sorties": getattr(args, "sorties", None),
+                                                "insecure": getattr(args, "insecure", None)})
     summary = run_demo(cfg.validate())
     return 0 if summary is not None and "sortie_error" not in summary else 1
 
@@ -334,8 +347,11 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     sim_set += cfg.sim_set
     save_config(cfg, flight.config_path)
     py = [sys.executable, "-m", "apps.cli"]
+    fleet_keys, temp_keys = _fleet_keys(cfg, ids)
+    endpoint, net_args = _network(cfg, fleet_keys)
     procs = ProcessSupervisor(logs)
-    bus = Transport.open(TransportConfig.rendezvous(cfg.zenoh_endpoint), "demo")
+    bus = Transport.open(TransportConfig.rendezvous(endpoint, keys_dir=str(fleet_keys.folder) if fleet_keys else ""),
+                         "demo", identity=keys.GCS)
     truth_rec = Recorder(flight.truth_path, node_id="sim", metadata={"fleet": cfg.fleet})
     truth_sub = bus.subscribe(keys.sim_key(cfg.fleet, keys.TRUTH), lambda rx: truth_rec.record_received("truth", rx),
                               SimTruth)
@@ -346,10 +362,11 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     sortie_error: dict = {}  #: the sortie that failed after an orbit was flown, and why
     orbits_flown = [0]  #: sorties whose orbit was flown to its end (landing may still have failed)
     fault_report: dict = {"config": {k: v for k, v in vars(cfg.faults).items()}}
+    closers: list = []  #: extra sessions to close at the end
     t_begin = time.monotonic()
     try:
         # 1. simulator (+ truth); 2. cameras; 3. agents
-        sim_cmd = py + ["sim", "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint, "--truth-hz",
+        sim_cmd = py + ["sim", "--fleet", cfg.fleet, *net_args, "--truth-hz",
                         str(cfg.truth_hz), "--out", str(logs / "sim"), "--status-every", "10",
                         "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
         if px4:
@@ -367,14 +384,13 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         procs.start("sim", sim_cmd)
         if cfg.cameras:
             for i, d in enumerate(ids):
-                cmd = _camera_command() + ["--drone-id", d, "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint]
+                cmd = _camera_command() + ["--drone-id", d, "--fleet", cfg.fleet, *net_args]
                 for s in cfg.camera_set:
                     cmd += ["--set", s]
                 procs.start(f"camera_{d}", cmd)
         for i, d in enumerate(ids):
             cmd = py + ["agent", "--drone-id", d, "--fleet", cfg.fleet, "--connection",
-                        f"udpin://0.0.0.0:{mavlink_base + i}", "--record-dir", str(out),
-                        "--zenoh-connect", cfg.zenoh_endpoint]
+                        f"udpin://0.0.0.0:{mavlink_base + i}", "--record-dir", str(out), *net_args]
             if track:
                 # the camera node tags each frame with the drone's latest published estimate: publish it often
                 # so that the pose at capture is not up to 100 ms stale while the drone turns
@@ -403,7 +419,13 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         # track mode: the plan's centre is the operator's approximate start position of the person, its slots
         # the formation's angles (no turning: the formation follows the person)
         center = tuple(cfg.track.start_guess_ned_m) if track else tuple(o.center_ned_m)
-        injector = MalformedDetectionsInjector(bus, cfg.fleet, ids, fc.malformed_detections_hz) if fc.malformed_detections_hz > 0 else None
+        injector = None
+        if fc.malformed_detections_hz > 0:
+            # a faulty teammate: its messages are published under the drones' own certificates (an outsider's
+            # could not even reach the fleet)
+            impostor = _AsTheDrones(endpoint, fleet_keys, ids[:2])
+            closers.append(impostor.close)
+            injector = MalformedDetectionsInjector(impostor, cfg.fleet, ids, fc.malformed_detections_hz)
         def fly_sortie(sortie: int) -> None:
             alive = [d for d in ids if d not in killed]
             if sortie > 1:
@@ -490,10 +512,14 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM) and n not in killed}
         if bad:
             log.warning("processes that did not exit cleanly: %s", bad)
+        for close in closers:
+            close()
         fleet.close()
         truth_sub.close()
         truth_rec.close()
         bus.close()
+        if temp_keys:
+            shutil.rmtree(fleet_keys.folder.parent, ignore_errors=True)  # the mkdtemp folder
     log.info("flight done in %.0f s; files in %s", time.monotonic() - t_begin, out)
 
     recon: dict = {"ran": False}
@@ -521,6 +547,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         if sortie_error:
             summary["sortie_error"] = sortie_error
     summary["autopilot"] = _autopilot_report(cfg, px4_folder)
+    summary["security"] = _security_report(fleet_keys, temp_keys)
     if track:
         summary["mode"] = "track"
         summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
@@ -533,7 +560,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if cfg.faults != FaultsDemoConfig():
         summary["faults"] = fault_report
     flight.summary_path.write_text(json.dumps(summary, indent=2))
-    print(f"autopilot: {summary['autopilot']['kind']}", flush=True)
+    print(f"autopilot: {summary['autopilot']['kind']}; transport: {summary['security']['transport']}", flush=True)
     for entry in summary.get("sorties", []):
         print(f"sortie {entry['sortie']} (frames, rates, min_separation_m and flight_s: whole flight):\n"
               + format_table(entry), flush=True)
@@ -594,6 +621,61 @@ def _autopilot_report(cfg: DemoConfig, px4_folder: Path | None) -> dict:
             "truth": "SIH HIL_STATE_QUATERNION (true state), resampled to SimTruth at "
                      f"{cfg.truth_hz:g} Hz; altitudes above SIH's ground",
             "position_estimate": "PX4 EKF2 on SIH's simulated sensors"}
+
+
+def _fleet_keys(cfg: DemoConfig, ids: list[str]):
+    """(the fleet folder, whether it is a temporary one made here) -- (None, False) with ``insecure``."""
+    if cfg.insecure:
+        log.warning("INSECURE demo (--insecure): plaintext Zenoh, no certificates, no access control -- anyone on "
+                    "this machine's network can read the fleet and command it. For debugging only.")
+        return None, False
+    if cfg.keys_dir:
+        fleet_keys = FleetKeys.load(cfg.keys_dir)
+        if fleet_keys.fleet != cfg.fleet:
+            raise SkycapError(f"keys_dir {cfg.keys_dir} is fleet {fleet_keys.fleet!r}, the demo flies {cfg.fleet!r}: "
+                              f"set fleet = {fleet_keys.fleet!r} or make keys for {cfg.fleet!r}")
+        for ident in [keys.GCS, keys.SIM, *ids]:
+            fleet_keys.check(ident)
+        return fleet_keys, False
+    folder = Path(tempfile.mkdtemp(prefix="skycap-keys-")) / "fleet"
+    fleet_keys = FleetKeys.create(folder, cfg.fleet, drones=ids, sim=True, days=2)
+    log.info("secure fleet: a new CA and %d certificates in %s (mutual TLS + access control; deleted at the end)",
+             len(fleet_keys.identities), folder)
+    return fleet_keys, True
+
+
+def _network(cfg: DemoConfig, fleet_keys) -> tuple[str, list[str]]:
+    """The rendezvous endpoint (``tls/`` when secure) and the network options of every child process."""
+    endpoint = cfg.zenoh_endpoint
+    if fleet_keys is None:
+        return endpoint, ["--zenoh-connect", endpoint]
+    endpoint = "tls/" + endpoint.partition("/")[2]
+    return endpoint, ["--zenoh-connect", endpoint, "--zenoh-keys", str(fleet_keys.folder)]
+
+
+def _security_report(fleet_keys, temporary: bool) -> dict:
+    if fleet_keys is None:
+        return {"transport": "INSECURE (plaintext, no authentication, no access control: --insecure)",
+                "insecure": True}
+    return {"transport": "mutual TLS + Zenoh access control", "insecure": False,
+            "keys": "temporary fleet CA (deleted after the flight)" if temporary else str(fleet_keys.folder),
+            "identities": dict(sorted(fleet_keys.identities.items()))}
+
+
+class _AsTheDrones:
+    """``publish_raw`` under the certificate of the drone whose key it is (fault injection of a faulty teammate)."""
+
+    def __init__(self, endpoint: str, fleet_keys, drones: list[str]):
+        sec = str(fleet_keys.folder) if fleet_keys is not None else ""
+        self.buses = {d: Transport.open(TransportConfig.local_peer(endpoint, sec), f"faulty-{d}", identity=d)
+                      for d in drones}
+
+    def publish_raw(self, key: str, data: bytes) -> None:
+        self.buses[keys.parse_key(key)[1]].publish_raw(key, data)
+
+    def close(self) -> None:
+        for b in self.buses.values():
+            b.close()
 
 
 def _camera_command() -> list[str]:

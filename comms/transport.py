@@ -153,14 +153,14 @@ class TransportConfig:
                 "meet anyone; set transport.connect (e.g. ['tcp/127.0.0.1:7447']) or transport.listen"
             )
 
-    def to_zenoh(self, node_id: str = "") -> zenoh.Config:
-        """The equivalent :class:`zenoh.Config`; with security, TLS and ACL for identity ``security.identity``
-        (default ``node_id``). Raises :class:`comms.security.SecurityError` for an unusable certificate."""
+    def to_zenoh(self, identity: str = "") -> zenoh.Config:
+        """The equivalent :class:`zenoh.Config`; with security, TLS and ACL for ``security.identity`` (default:
+        ``identity``). Raises :class:`comms.security.SecurityError` for an unusable certificate."""
         self.validate()
         cfg = zenoh.Config()
         if self.security.enabled:
             fleet_keys = FleetKeys.load(self.security.keys_dir)
-            identity = self.security.identity or node_id
+            identity = self.security.identity or identity
             fleet_keys.check(identity)
             cfg.insert_json5("transport/link/tls", json.dumps(tls_config(fleet_keys, identity,
                                                                          self.security.verify_name)))
@@ -176,6 +176,19 @@ class TransportConfig:
             except Exception as e:  # zenoh.ZError
                 raise TransportError(f"transport.zenoh_json5[{k!r}] = {v!r} is refused by Zenoh: {e}") from None
         return cfg
+
+
+def local_peer_overrides(connect: str | None, keys_dir: str | None) -> dict[str, Any]:
+    """Config overrides (``transport.*``) of a command's ``--zenoh-connect`` / ``--zenoh-keys``: join that
+    rendezvous as a local peer (listen on an ephemeral loopback port in its protocol), with that fleet folder.
+    Unset options leave the config file's values alone."""
+    out: dict[str, Any] = {}
+    if connect:
+        out["transport.connect"] = [connect]
+        out["transport.listen"] = [f"{connect.partition('/')[0]}/127.0.0.1:0"]
+    if keys_dir:
+        out["transport.security.keys_dir"] = str(keys_dir)
+    return out
 
 
 @dataclass(slots=True)
@@ -361,10 +374,11 @@ class Transport:
     an ``atexit`` hook). All methods are thread-safe.
     """
 
-    def __init__(self, session: zenoh.Session, config: TransportConfig, node_id: str) -> None:
+    def __init__(self, session: zenoh.Session, config: TransportConfig, node_id: str, identity: str = "") -> None:
         self._session = session
         self.config = config
         self.node_id = node_id
+        self._identity = (config.security.identity or identity or node_id) if config.security.enabled else ""
         self._lock = threading.Lock()
         self._publishers: dict[str, Any] = {}
         self._seq: dict[str, int] = {}
@@ -384,14 +398,16 @@ class Transport:
 
     # ----------------------------------------------------------------------------------------- life
     @classmethod
-    def open(cls, config: TransportConfig | None = None, node_id: str = "node") -> Transport:
+    def open(cls, config: TransportConfig | None = None, node_id: str = "node", identity: str = "") -> Transport:
         """Open a Zenoh session from ``config`` (defaults: local peer joining the rendezvous).
 
-        ``node_id`` is only used in logs and errors (messages carry their own ``header.sender_id``).
-        Raises :class:`TransportError` (e.g. a listen port already in use).
+        ``node_id`` is used in logs and errors (messages carry their own ``header.sender_id``). ``identity``:
+        the certificate a secure session presents when ``config.security.identity`` is empty (default:
+        ``node_id``; e.g. a drone's camera service presents its drone's). Raises :class:`TransportError` (e.g. a
+        listen port already in use) or :class:`comms.security.SecurityError` (an unusable certificate).
         """
         config = config or TransportConfig()
-        zcfg = config.to_zenoh(node_id)
+        zcfg = config.to_zenoh(config.security.identity or identity or node_id)
         try:
             session = zenoh.open(zcfg)
         except Exception as e:  # zenoh.ZError
@@ -400,7 +416,7 @@ class Transport:
                 f"connect={config.connect}): {e}. If a listen port is in use, another process already listens "
                 f"there (a second rendezvous?): pick another port or join it via transport.connect"
             ) from None
-        t = cls(session, config, node_id)
+        t = cls(session, config, node_id, identity)
         _OPEN_TRANSPORTS.add(t)
         log.info("%s: zenoh %s session %s open (listen=%s, connect=%s, multicast=%s)", node_id, config.mode,
                  session.zid(), config.listen, config.connect, config.multicast_scouting)
@@ -421,7 +437,7 @@ class Transport:
     @property
     def identity(self) -> str:
         """The certificate identity this session presents (its node id unless configured), '' when insecure."""
-        return (self.config.security.identity or self.node_id) if self.secure else ""
+        return self._identity
 
     def close(self) -> None:
         """Undeclare everything and close the session (idempotent). Liveliness tokens vanish: others see a leave."""

@@ -213,11 +213,22 @@ class Agent:
             return
         self.formation.on_teammate_plan(keys.parse_key(rx.key)[1], rx.msg, self.source)
 
+    def _sender(self, rx) -> str:
+        """Who sent ``rx``, for the log: the sender id, authenticated by its certificate when the transport is
+        secure (the ACL lets only that certificate publish under its keys; the transport refused any other
+        claimed sender id)."""
+        who = rx.msg.header.sender_id
+        if self.bus.secure:
+            return f"{who!r} (authenticated: certificate CN {who!r}, mutual TLS + fleet ACL)"
+        return f"{who!r} (NOT authenticated: insecure transport)"
+
     def on_command(self, rx) -> None:
         self.outbox.record(rx.key, rx.data, rx.t_received_ns)
         cmd: Command = rx.msg
         if cmd.target not in ("*", self.id):
             return  # another drone's command: its agent answers
+        log.info("%s: command %s %s for %s from %s", self.id, cmd.action, cmd.command_id, cmd.target,
+                 self._sender(rx))
         reason = validate_command(cmd, self.id, rx.t_received_ns)
         if reason is not None:
             self.ack(cmd.command_id, "refused", reason)
@@ -235,6 +246,7 @@ class Agent:
         if self.mission.plan is not None and plan.plan_id == self.mission.plan.plan_id and \
                 plan.header.t_sent_ns == self.mission.plan.header.t_sent_ns:
             return  # the same plan again (live + query)
+        log.info("%s: orbit plan %s from %s", self.id, plan.plan_id, self._sender(rx))
         reason = validate_plan(plan, self.id, self.cfg.safety, rx.t_received_ns)
         if reason is not None:
             self.ack(plan.plan_id, "refused", reason)

@@ -376,7 +376,7 @@ def serve(agent_cfg: Any, *, stop: threading.Event | None = None,
         for sig in (signal.SIGTERM, signal.SIGINT):
             restore.append((sig, signal.signal(sig, lambda signum, _frame: stop.set())))
     try:
-        with Transport.open(agent_cfg.transport, node_id=f"{agent_cfg.drone_id}-camera") as bus:
+        with Transport.open(agent_cfg.transport, node_id=f"{agent_cfg.drone_id}-camera", identity=agent_cfg.drone_id) as bus:
             # a file served as a camera (bench tests) replays in a loop rather than re-opening after each end
             svc = CameraService(cam_cfg, bus, agent_cfg.fleet, agent_cfg.drone_id,
                                 loop_file=cam_cfg.source == "file").start()
