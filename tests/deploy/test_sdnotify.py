@@ -8,6 +8,7 @@ import asyncio
 import os
 import socket
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -231,3 +232,61 @@ def test_an_agent_started_in_flight_lands_or_resumes_by_policy():
 def test_example_config_documents_the_restart_policy():
     text = (Path(__file__).resolve().parents[2] / "deploy" / "agent.example.toml").read_text()
     assert 'on_restart_airborne = "land"' in text
+
+
+def test_camera_service_under_the_notify_protocol(tmp_path, monkeypatch, bus_pair):
+    """``skycap camera serve`` (skycap-camera.service): READY once publishing, watchdog pings from its capture
+    loop, STOPPING when stopped."""
+    pytest.importorskip("cysystemd", reason="cysystemd is the sd_notify library on Linux (pyproject base deps)")
+    import cv2
+    import numpy as np
+
+    from onboard.camera.service import serve
+    from skycap.config import load_config
+    from tests.onboard.camera.support import write_calibration
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(4):
+        cv2.imwrite(str(frames / f"im{i}.jpg"), np.full((48, 64, 3), 40 * i, np.uint8))
+    cal = write_calibration(tmp_path / "camera.toml", 64, 48)
+    a, _ = bus_pair
+    toml = tmp_path / "agent.toml"
+    toml.write_text(f'drone_id = "drone_3"\nfleet = "f9"\n[camera]\nsource = "file"\nuri = "{frames}"\n'
+                    f'rate_hz = 20.0\ncalibration_file = "{cal}"\n')
+    cfg = load_config(AgentConfig, toml, [f'transport.connect=["{a.config.listen[0]}"]'])
+    s, path = _bound_socket()
+    s.settimeout(0.2)
+    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    monkeypatch.setenv("WATCHDOG_USEC", "400000")
+    got: list[tuple[float, str]] = []
+    stop = threading.Event()
+    rc: list[int] = []
+    t = threading.Thread(target=lambda: rc.append(serve(cfg, stop=stop)))
+    try:
+        t.start()
+        t_end = time.monotonic() + 3.0
+        while time.monotonic() < t_end:
+            try:
+                got.append((time.monotonic(), s.recv(4096).decode()))
+            except socket.timeout:
+                pass
+        stop.set()
+        t.join(10)
+        while True:
+            try:
+                got.append((time.monotonic(), s.recv(4096).decode()))
+            except socket.timeout:
+                break
+    finally:
+        stop.set()
+        s.close()
+        os.unlink(path)
+        os.rmdir(os.path.dirname(path))
+    texts = [m for _, m in got]
+    assert rc == [0] and texts[0].startswith("STATUS=camera cam0 of drone_3: starting"), texts[:3]
+    i_ready = next(i for i, m in enumerate(texts) if m.startswith("READY=1"))
+    assert any("delivering" in m for m in texts[i_ready:]), texts
+    pings = [t for t, m in got if m == "WATCHDOG=1"]
+    assert len(pings) >= 10 and max(b - a for a, b in zip(pings, pings[1:])) < 0.2
+    assert texts[-1].startswith("STOPPING=1")
