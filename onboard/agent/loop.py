@@ -32,7 +32,8 @@ The :class:`Agent` is the wiring; each part has one job and is testable alone:
   logged, counted, kept in the health warnings and written to ``<drone>.track.json`` (``failsafe_events``,
   ``failsafe_counts``) with the malformed-detection and network-fault counters.
 
-Loops (asyncio, one thread + MAVSDK's and Zenoh's own): the control loop (``rates.setpoint_hz``), the
+Loops (asyncio, one thread + MAVSDK's and Zenoh's own): the control loop (``rates.setpoint_hz``; under systemd it
+also sends READY once the autopilot link is up and pings the watchdog: :meth:`Agent._systemd_tick`), the
 supervisor (10 Hz: vehicle events, failsafes, health heartbeat) and the telemetry callbacks (50 Hz:
 record state, publish it at ``rates.state_publish_hz``).
 
