@@ -31,6 +31,8 @@ def test_systemd_unit_runs_the_agent_and_leaves_time_to_land():
 # --- the systemd units ------------------------------------------------------------------------------------
 SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
 UNITS = ("skycap-agent.service", "skycap-camera.service")
+needs_systemd_analyze = pytest.mark.skipif(SYSTEMD_ANALYZE is None,
+                                           reason="systemd-analyze not installed (Debian/Ubuntu: apt install systemd)")
 
 
 def _installable_copies(tmp_path: Path) -> list[Path]:
@@ -42,7 +44,8 @@ def _installable_copies(tmp_path: Path) -> list[Path]:
         text = (DEPLOY / name).read_text()
         assert "ExecStart=/opt/skycap/.venv/bin/skycap " in text
         copy = tmp_path / name
-        copy.write_text(text.replace("ExecStart=/opt/skycap/.venv/bin/skycap ", f"ExecStart={sys.executable} -m apps.cli "))
+        copy.write_text(text.replace("ExecStart=/opt/skycap/.venv/bin/skycap ",
+                                     f"ExecStart={sys.executable} -m apps.cli "))
         out.append(copy)
     return out
 
@@ -69,7 +72,7 @@ def test_units_speak_the_notify_protocol_with_a_watchdog(name):
         assert int(d["TimeoutStartSec"][0]) > AgentConfig().connect_timeout_s
 
 
-@pytest.mark.skipif(SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed (Debian/Ubuntu: apt install systemd)")
+@needs_systemd_analyze
 def test_systemd_analyze_verifies_the_units(tmp_path):
     copies = _installable_copies(tmp_path)
     r = subprocess.run([SYSTEMD_ANALYZE, "verify", *map(str, copies)], capture_output=True, text=True, timeout=60,
@@ -78,7 +81,7 @@ def test_systemd_analyze_verifies_the_units(tmp_path):
     assert r.returncode == 0 and not (r.stdout + r.stderr).strip(), r.stdout + r.stderr
 
 
-@pytest.mark.skipif(SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed (Debian/Ubuntu: apt install systemd)")
+@needs_systemd_analyze
 def test_systemd_analyze_security_rates_the_units_ok(tmp_path):
     for copy in _installable_copies(tmp_path):
         r = subprocess.run([SYSTEMD_ANALYZE, "security", "--offline=yes", "--no-pager", str(copy)],
