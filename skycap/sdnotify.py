@@ -91,7 +91,7 @@ class Notifier:
             except ImportError as e:
                 raise NotifyError(
                     f"NOTIFY_SOCKET is set (a systemd Type=notify service) but the sd_notify library is missing "
-                    f"({e}); install it in this environment: pip install 'cysystemd>=1.6' (a base dependency of "
+                    f"({e}); install it in this environment: pip install 'cysystemd>=1.5.4' (a base dependency of "
                     "skycap on Linux), or run the unit with Type=simple") from e
             self._send = _libsystemd_send
 

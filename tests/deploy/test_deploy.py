@@ -19,6 +19,10 @@ def test_example_config_loads_and_validates():
     cfg = load_config(AgentConfig, DEPLOY / "agent.example.toml").validate()
     assert cfg.drone_id == "drone_1" and cfg.connection.startswith("serial://")
     assert cfg.safety.sigterm_action == "land"
+    # deployed secure: every link mutual TLS with the fleet folder's certificates
+    assert cfg.transport.security.keys_dir == "/etc/skycap/fleet"
+    assert all(ep.startswith("tls/") for ep in cfg.transport.listen + cfg.transport.connect)
+    cfg.transport.validate()
 
 
 def test_systemd_unit_runs_the_agent_and_leaves_time_to_land():
