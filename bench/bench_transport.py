@@ -196,7 +196,7 @@ def bench_latency(b: Bench, seconds: float, label: str) -> list[list[str]]:
         v = r["lat"][topic]
         rows.append([label, f"{topic} ({size}) at {100 if topic == 'state' else 10} Hz", f"{len(v)}/{sent[topic]}",
                      f"{pct(v, 50):.2f}", f"{pct(v, 95):.2f}", f"{pct(v, 99):.2f}", f"{max(v) / 1e6:.2f}",
-                     f"{100 * cpu_pub / (seconds + 0.5):.1f} / {100 * r['cpu_s'] / (seconds + 0.5):.1f}"])
+                     f"{100 * cpu_pub / (seconds + 0.5):.2f} / {100 * r['cpu_s'] / (seconds + 0.5):.2f}"])
     return rows
 
 
