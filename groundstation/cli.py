@@ -4,12 +4,15 @@
     skycap fleet cmd takeoff                    # every drone
     skycap fleet cmd land --target drone_2
     skycap fleet watch                          # table of the fleet, and the ground-station heartbeat
+    skycap gs [--sim N]                         # the ground-station app (PySide6)
+    skycap gs --selftest DIR                    # scripted offscreen operator session against a simulated fleet
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
     w.add_argument("--period", type=float, default=1.0, help="seconds between tables")
     w.set_defaults(func=_watch)
+    register_gs(sub)
 
 
 def _client(args, heartbeat_hz: float = 2.0):
@@ -107,3 +111,50 @@ def _watch(args) -> int:
             print(flush=True)
             time.sleep(args.period)
     return 0
+
+
+# --------------------------------------------------------------------------------------------- skycap gs
+def register_gs(sub: argparse._SubParsersAction) -> None:
+    from skycap.config import add_config_args
+
+    p = sub.add_parser("gs", help="the ground-station app (PySide6): plan, watch and command the fleet; process flights")
+    p.add_argument("--sim", type=int, default=0, metavar="N",
+                   help="start the built-in simulated fleet of N drones (temporary fleet CA, mutual TLS)")
+    p.add_argument("--selftest", type=Path, default=None, metavar="DIR",
+                   help="run a scripted operator session offscreen against the simulated fleet (--sim N, default 2); "
+                        "screenshots and DIR/selftest.json")
+    p.add_argument("--orbit-s", type=float, default=20.0, help="self-test: seconds of orbit (default 20)")
+    p.add_argument("--no-process", action="store_true", help="self-test: skip 'process flight'")
+    add_config_args(p)
+    p.set_defaults(func=_gs)
+
+
+def _gs(args) -> int:
+    import os
+
+    from groundstation.app.config import GsConfig
+    from skycap.config import config_from_args
+
+    cfg = config_from_args(GsConfig, args)
+    if args.selftest is not None:
+        os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+        from groundstation.app.selftest import run_selftest
+
+        report = run_selftest(args.selftest, drones=args.sim or 2, orbit_s=args.orbit_s, process=not args.no_process)
+        for s in report["steps"]:
+            print(f"{'ok  ' if s['ok'] else 'FAIL'} {s['name']}: {s['detail'][:160]}")
+        print(f"self-test {'passed' if report.get('ok') else 'FAILED'}: {args.selftest / 'selftest.json'}")
+        return 0 if report.get("ok") else 1
+    from PySide6.QtWidgets import QApplication
+
+    from groundstation.app.session import GsSession
+    from groundstation.app.window import MainWindow
+
+    app = QApplication.instance() or QApplication(["skycap gs"])
+    session = GsSession.open(cfg, sim_drones=args.sim)
+    try:
+        win = MainWindow(session.model, session.cfg)
+        win.show()
+        return app.exec()
+    finally:
+        session.close()

@@ -110,6 +110,8 @@ class FleetClient:
         self.healths: dict[str, Health] = {}
         self.acks: list[CommandAck] = []
         self.alive: set[str] = set()
+        #: monotonic time of the last state or health received from each drone (link age, staleness)
+        self.last_rx_s: dict[str, float] = {}
         self._cv = threading.Condition(self._lock)
         self._stop = threading.Event()
         self._hb_thread: threading.Thread | None = None
@@ -140,8 +142,10 @@ class FleetClient:
         return keys.parse_key(key)[1]
 
     def _on_state(self, rx) -> None:
+        node = self._node(rx.key)
         with self._cv:
-            self.states[self._node(rx.key)] = rx.msg
+            self.states[node] = rx.msg
+            self.last_rx_s[node] = time.monotonic()
             self._cv.notify_all()
 
     def _on_health(self, rx) -> None:
@@ -150,6 +154,7 @@ class FleetClient:
             return
         with self._cv:
             self.healths[node] = rx.msg
+            self.last_rx_s[node] = time.monotonic()
             self._cv.notify_all()
 
     def _on_ack(self, rx) -> None:

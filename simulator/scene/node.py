@@ -20,6 +20,7 @@ import threading
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 
 from shared_msgs import keys
@@ -50,6 +51,9 @@ class ZenohCameraAdapter:
         self._truth_rx_mono = 0.0
         self._estimate: VehicleState | None = None
         self._last_rendered_ns: int | None = None
+        self.thumbnail_hz = 1.0  #: camera/thumb rate (0 = none)
+        self.thumbnail_width_px = 320
+        self._t_last_thumb = -1e9
         self._subs = [
             bus.subscribe(keys.sim_key(fleet, keys.TRUTH), self._on_truth, SimTruth),
             bus.subscribe(keys.drone_key(fleet, drone_id, keys.STATE), self._on_state, VehicleState),
@@ -79,6 +83,28 @@ class ZenohCameraAdapter:
 
     def publish(self, topic: str, msg: Message) -> None:
         self.bus.publish(keys.drone_key(self.fleet, self.drone_id, topic), msg, latch=(topic == keys.CAMERA_INFO))
+        if topic == keys.CAMERA_IMAGE and self.thumbnail_hz > 0:
+            now = time.monotonic()
+            if now - self._t_last_thumb >= 1.0 / self.thumbnail_hz:
+                self._t_last_thumb = now
+                self._publish_thumb(msg)
+
+    def _publish_thumb(self, frame) -> None:
+        """``camera/thumb`` as a real drone's camera service sends it: a small JPEG at a low rate (the ground
+        station's live view; the full-rate images stay on the drone)."""
+        img = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            return
+        if img.shape[1] > self.thumbnail_width_px:
+            h = max(1, round(img.shape[0] * self.thumbnail_width_px / img.shape[1]))
+            img = cv2.resize(img, (self.thumbnail_width_px, h), interpolation=cv2.INTER_AREA)
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 70])
+        if not ok:
+            return
+        thumb = msgspec.structs.replace(frame, header=type(frame).make_header(
+            self.drone_id, frame.header.t_measurement_ns, frame.header.seq), encoding="jpeg",
+            width_px=int(img.shape[1]), height_px=int(img.shape[0]), data=buf.tobytes())
+        self.bus.publish(keys.drone_key(self.fleet, self.drone_id, keys.CAMERA_THUMB), thumb)
 
     def close(self) -> None:
         for s in self._subs:

@@ -1,0 +1,447 @@
+"""The ground station's fleet model: everything the widgets show and every operator action, without Qt.
+
+:class:`FleetModel` wraps a :class:`~groundstation.fleet.FleetClient` (states, healths, acks, presence, the
+ground-station heartbeat) and adds what the app needs: thumbnails, detections and person estimates, link
+ages, alerts kept in an event log, the pre-flight checklist, plan validation from the form's fields, and
+commands whose per-drone results (accepted, completed, refused with reason, no answer) are tracked without
+blocking. The Qt widgets only read :meth:`FleetModel.rows` etc. and call the action methods.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+from groundstation.app.config import GsConfig
+from groundstation.fleet import FleetClient, FleetError, make_orbit_plan
+from shared_msgs import CameraFrame, Detections, OrbitPlan, TargetEstimate, keys
+from shared_msgs.messages import CameraInfo, CameraStatus, SimTruth
+from skycap.frames import yaw_from_quat_wxyz
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Check", "CommandRun", "DroneRow", "Event", "FleetModel", "PlanForm", "GPS_GRADES"]
+
+#: MAVLink GPS_FIX_TYPE -> the grade shown
+GPS_GRADES = {0: "no GPS", 1: "no fix", 2: "2D", 3: "3D", 4: "DGPS", 5: "RTK float", 6: "RTK fixed", 7: "static",
+              8: "PPP"}
+#: agent states in the air (commands that need the ground are refused by the agents themselves)
+AIRBORNE = {"takeoff", "hover", "orbit", "track", "paused", "return", "landing"}
+#: the operator's commands, QGroundControl's words -> the agents' actions
+ACTIONS = {"takeoff": "Arm + take off", "start": "Start", "pause": "Pause", "land": "Land", "return": "Return"}
+#: commands always sent, even to a drone whose link is stale: bringing it down must never be blocked
+SAFE_ACTIONS = {"land", "return"}
+
+
+@dataclass
+class Event:
+    t_wall_s: float
+    level: str  #: "info", "warning", "alert"
+    drone: str
+    text: str
+
+    def line(self) -> str:
+        return f"{time.strftime('%H:%M:%S', time.localtime(self.t_wall_s))} {self.level.upper():7s} " \
+               f"{self.drone or '-':9s} {self.text}"
+
+
+@dataclass
+class DroneRow:
+    """One drone in the fleet panel; ``age_s`` is the time since its last state or health message."""
+
+    drone: str
+    present: bool
+    age_s: float | None
+    stale: bool
+    lost: bool
+    state: str = "-"
+    mode: str = "-"
+    armed: bool = False
+    battery_frac: float | None = None
+    gps: str = "-"
+    satellites: int = 0
+    position_std_m: float | None = None
+    setpoint_hz: float = 0.0
+    state_hz: float = 0.0
+    recorder: str = "-"
+    detector: str = "-"
+    tracker: str = "-"
+    warnings: list[str] = field(default_factory=list)
+    north_m: float = 0.0
+    east_m: float = 0.0
+    altitude_m: float = 0.0
+    yaw_rad: float = 0.0
+    ok: bool = False
+
+
+@dataclass
+class Check:
+    name: str
+    ok: bool
+    detail: str
+
+
+@dataclass
+class PlanForm:
+    """The plan form's fields, as the operator typed them."""
+
+    center_north_m: float = 0.0
+    center_east_m: float = 0.0
+    radius_m: float = 8.0
+    altitude_m: float = 6.0
+    speed_m_s: float = 1.2  #: along the circle
+    direction: int = 1  #: 1 clockwise from above, -1 anticlockwise
+    drones: list[str] = field(default_factory=list)
+    min_separation_m: float = 3.0
+
+
+@dataclass
+class CommandRun:
+    """A command (or a plan) sent to ``targets``: each drone's result is read from the acks as they arrive."""
+
+    action: str
+    targets: list[str]
+    command_ids: dict[str, str]  #: drone -> command id (plan id for a plan)
+    t_sent_s: float
+    timeout_s: float
+    refused_here: dict[str, str] = field(default_factory=dict)  #: drone -> why the app did not send it
+    override: bool = False
+
+    def results(self, acks, now_s: float) -> dict[str, tuple[str, str]]:
+        """{drone: (result, reason)}: completed > failed > refused > accepted; "no answer" after the timeout,
+        "waiting" before; "not sent" for the drones the app refused."""
+        rank = {"completed": 4, "failed": 3, "refused": 2, "accepted": 1}
+        out: dict[str, tuple[str, str]] = {d: ("not sent", r) for d, r in self.refused_here.items()}
+        best: dict[str, tuple[int, str, str]] = {}
+        for a in acks:
+            d = a.header.sender_id
+            if self.command_ids.get(d) != a.command_id:  # a plan's id is shared by its drones: match both
+                continue
+            r = rank.get(a.result, 0)
+            if r > best.get(d, (0, "", ""))[0]:
+                best[d] = (r, a.result, a.reason)
+        for d in self.command_ids:
+            if d in best:
+                out[d] = (best[d][1], best[d][2])
+            elif now_s - self.t_sent_s >= self.timeout_s:
+                out[d] = ("no answer", f"no answer within {self.timeout_s:.0f} s")
+            else:
+                out[d] = ("waiting", "")
+        return out
+
+    def done(self, acks, now_s: float) -> bool:
+        return all(r not in ("waiting",) for r, _ in self.results(acks, now_s).values())
+
+    def summary(self, acks, now_s: float) -> str:
+        res = self.results(acks, now_s)
+        return ", ".join(f"{d}: {r}{' (' + why + ')' if why and r != 'no answer' else ''}"
+                         for d, (r, why) in sorted(res.items()))
+
+
+class FleetModel:
+    """The app's fleet model over ``client`` (a :class:`FleetClient`); ``clock`` is monotonic seconds."""
+
+    def __init__(self, client: FleetClient, cfg: GsConfig, clock: Callable[[], float] = time.monotonic):
+        self.client = client
+        self.cfg = cfg
+        self.clock = clock
+        self.fleet = client.fleet
+        self._lock = threading.Lock()
+        self.thumbs: dict[str, CameraFrame] = {}
+        self.thumb_rx: dict[str, float] = {}
+        self.thumb_count: dict[str, int] = {}
+        self.detections: dict[str, Detections] = {}
+        self.camera_info: dict[str, CameraInfo] = {}
+        self.camera_status: dict[str, CameraStatus] = {}
+        self.targets: dict[str, TargetEstimate] = {}
+        self.truth: SimTruth | None = None
+        self.events: list[Event] = []
+        self.runs: list[CommandRun] = []
+        self.plan: OrbitPlan | None = None
+        self.overrides: dict[str, str] = {}  #: drone -> why the operator overrode its failing checklist
+        self._seen: dict[str, dict] = {}  #: per drone: what was already alerted (edge-triggered alerts)
+        self._acks_seen = 0
+        bus = client.bus
+        f = self.fleet
+        self._subs = [
+            bus.subscribe(keys.all_drones_key(f, keys.CAMERA_THUMB), self._on_thumb, CameraFrame),
+            bus.subscribe(keys.all_drones_key(f, keys.CAMERA_INFO), self._on_put("camera_info"), CameraInfo),
+            bus.subscribe(keys.all_drones_key(f, keys.CAMERA_STATUS), self._on_put("camera_status"), CameraStatus),
+            bus.subscribe(keys.all_drones_key(f, keys.TARGET), self._on_put("targets"), TargetEstimate),
+            bus.subscribe(keys.all_drones_key(f, keys.DETECTIONS), self._on_put("detections"), Detections),
+            bus.subscribe(keys.all_drones_key(f, keys.SIM_DETECTIONS), self._on_put("detections"), Detections),
+            bus.subscribe(keys.sim_key(f, keys.TRUTH), self._on_truth, SimTruth),
+        ]
+        self.log_event("info", "", f"ground station joined fleet {f!r} ({'mutual TLS, gcs certificate' if bus.secure else 'INSECURE plaintext'}); heartbeat {client.heartbeat_hz:g} Hz")
+
+    # --- inputs (Zenoh threads) -------------------------------------------------------------------
+    def _on_thumb(self, rx) -> None:
+        d = keys.parse_key(rx.key)[1]
+        with self._lock:
+            self.thumbs[d] = rx.msg
+            self.thumb_rx[d] = self.clock()
+            self.thumb_count[d] = self.thumb_count.get(d, 0) + 1
+
+    def _on_put(self, name: str):
+        store = getattr(self, name)
+
+        def put(rx) -> None:
+            with self._lock:
+                store[keys.parse_key(rx.key)[1]] = rx.msg
+        return put
+
+    def _on_truth(self, rx) -> None:
+        self.truth = rx.msg
+
+    # --- events -----------------------------------------------------------------------------------
+    def log_event(self, level: str, drone: str, text: str) -> Event:
+        ev = Event(time.time(), level, drone, text)
+        with self._lock:
+            self.events.append(ev)
+        (log.warning if level != "info" else log.info)("%s %s", drone or "gcs", text)
+        return ev
+
+    def alerts(self) -> list[Event]:
+        return [e for e in self.events if e.level == "alert"]
+
+    def poll_alerts(self) -> None:
+        """Turn changes into events: link lost / back, failsafe warnings, low battery, refused or failed acks."""
+        now = self.clock()
+        for r in self.rows():
+            seen = self._seen.setdefault(r.drone, {"lost": False, "warnings": set(), "low_batt": False})
+            if r.lost and not seen["lost"]:
+                self.log_event("alert", r.drone, f"LINK LOST: no message for {r.age_s:.1f} s")
+            elif not r.lost and seen["lost"]:
+                self.log_event("info", r.drone, "link back")
+            seen["lost"] = r.lost
+            for w in r.warnings:
+                if w not in seen["warnings"]:
+                    seen["warnings"].add(w)
+                    self.log_event("alert", r.drone, f"FAILSAFE / warning: {w}")
+            low = r.battery_frac is not None and r.battery_frac < self.cfg.checklist.min_battery_frac * 0.6
+            if low and not seen["low_batt"]:
+                self.log_event("alert", r.drone, f"LOW BATTERY: {100 * r.battery_frac:.0f} %")
+            seen["low_batt"] = low
+        acks = self.client.acks
+        for a in acks[self._acks_seen:]:
+            if a.result in ("refused", "failed"):
+                self.log_event("alert", a.header.sender_id, f"{a.result.upper()}: {a.command_id}: {a.reason}")
+            else:
+                self.log_event("info", a.header.sender_id, f"{a.result}: {a.command_id}")
+        self._acks_seen = len(acks)
+        for run in self.runs:
+            if not getattr(run, "_timeouts_logged", False) and now - run.t_sent_s >= run.timeout_s:
+                run._timeouts_logged = True  # type: ignore[attr-defined]
+                for d, (res, why) in run.results(acks, now).items():
+                    if res == "no answer":
+                        self.log_event("alert", d, f"NO ANSWER to {run.action} within {run.timeout_s:.0f} s")
+
+    # --- views ------------------------------------------------------------------------------------
+    def drone_ids(self) -> list[str]:
+        c = self.client
+        with c._lock:
+            ids = set(c.states) | {d for d, h in c.healths.items() if h.role == "agent"}
+            ids |= {d for d in c.alive if d not in (keys.GCS, keys.SIM)} & (set(c.states) | set(c.healths))
+        from flightdata.folder import natural_key
+        return sorted(ids, key=natural_key)
+
+    def row(self, d: str) -> DroneRow:
+        c, ui, now = self.client, self.cfg.ui, self.clock()
+        with c._lock:
+            s, h, t = c.states.get(d), c.healths.get(d), c.last_rx_s.get(d)
+            present = d in c.alive
+        age = None if t is None else now - t
+        r = DroneRow(drone=d, present=present, age_s=age, stale=age is None or age > ui.stale_s,
+                     lost=age is not None and age > ui.link_lost_s)
+        if s is not None:
+            r.mode, r.armed, r.battery_frac = s.flight_mode, s.armed, s.battery_remaining_frac
+            r.gps = GPS_GRADES.get(s.gps_fix_type, str(s.gps_fix_type))
+            r.satellites = s.gps_num_satellites
+            r.position_std_m = math.sqrt(max(0.0, s.position_cov_m2[0]) + max(0.0, s.position_cov_m2[1]))
+            n, e, dn = s.position_ned_m
+            r.north_m, r.east_m, r.altitude_m = n, e, -dn
+            r.yaw_rad = yaw_from_quat_wxyz(s.q_world_body)
+            r.ok = s.health_ok
+        if h is not None:
+            r.state = h.state
+            r.warnings = list(h.warnings)
+            rates = h.rates_hz
+            r.setpoint_hz, r.state_hz = rates.get("setpoint", 0.0), rates.get("state", 0.0)
+            r.recorder = f"frames {rates.get('frame', 0.0):.0f} Hz"
+            det = rates.get("detections", rates.get("keypoints"))
+            r.detector = f"{det:.1f} Hz" if det is not None else "off (orbit mode)"
+            r.ok = r.ok and h.ok
+        with self._lock:
+            tgt = self.targets.get(d)
+            st = self.camera_status.get(d)
+        if tgt is not None:
+            r.tracker = f"{tgt.status} ({tgt.num_sources} src)"
+        if st is not None:
+            r.recorder += f", cam dropped {st.dropped}"
+        return r
+
+    def rows(self) -> list[DroneRow]:
+        return [self.row(d) for d in self.drone_ids()]
+
+    def checklist(self, d: str) -> list[Check]:
+        """Pre-flight checks of drone ``d`` from its latest state and health."""
+        cc = self.cfg.checklist
+        r = self.row(d)
+        with self.client._lock:
+            s = self.client.states.get(d)
+        checks = [Check("link", not r.stale and r.age_s is not None,
+                        "no message yet" if r.age_s is None else f"last message {r.age_s:.1f} s ago"
+                        + (" (stale)" if r.stale else ""))]
+        if s is None:
+            checks.append(Check("position fix", False, "no vehicle state received"))
+        else:
+            fix_ok = s.gps_fix_type >= cc.min_gps_fix_type and (r.position_std_m or 99) <= cc.max_position_std_m
+            checks.append(Check("position fix", fix_ok, f"{r.gps}, {s.gps_num_satellites} sats, "
+                                f"±{r.position_std_m:.2f} m (need ≥ {GPS_GRADES.get(cc.min_gps_fix_type)}, "
+                                f"≤ {cc.max_position_std_m:g} m)"))
+            checks.append(Check("battery", s.battery_remaining_frac >= cc.min_battery_frac,
+                                f"{100 * s.battery_remaining_frac:.0f} % (need ≥ {100 * cc.min_battery_frac:.0f} %)"))
+            checks.append(Check("autopilot health", s.health_ok, "global position, home and armable"
+                                + (" ok" if s.health_ok else " NOT ok")))
+        with self.client._lock:
+            h = self.client.healths.get(d)
+        frame_hz = h.rates_hz.get("frame", 0.0) if h else 0.0
+        with self._lock:
+            has_info = d in self.camera_info
+        cam_ok = frame_hz > 0.5 or has_info
+        checks.append(Check("camera", cam_ok or not cc.require_camera,
+                            f"frames {frame_hz:.1f} Hz{', camera_info received' if has_info else ''}"
+                            + ("" if cc.require_camera else " (not required)")))
+        det = h.rates_hz.get("detections") if h else None
+        checks.append(Check("detector", det is not None or not cc.require_detector,
+                            f"{det:.1f} Hz" if det is not None else "not reported by the agent (orbit mode)"
+                            + ("" if cc.require_detector else "; not required")))
+        checks.append(Check("recorder space", True, "not reported by the agent's health: check on the drone"))
+        return checks
+
+    def checklist_ok(self, d: str) -> bool:
+        return all(c.ok for c in self.checklist(d))
+
+    def override_checklist(self, d: str, reason: str) -> None:
+        """The operator arms ``d`` despite failing checks: logged with the checks that failed."""
+        failing = [f"{c.name}: {c.detail}" for c in self.checklist(d) if not c.ok]
+        self.overrides[d] = reason or "operator override"
+        self.log_event("alert", d, f"CHECKLIST OVERRIDE by the operator ({reason or 'no reason given'}); "
+                       f"failing: {'; '.join(failing) or 'none'}")
+
+    # --- plans ------------------------------------------------------------------------------------
+    def validate_plan(self, form: PlanForm) -> tuple[OrbitPlan | None, str]:
+        """(plan, "") or (None, the reason): field values, geofence, separation, duplicates, then the agents'
+        own checks (:func:`groundstation.fleet.check_plan`)."""
+        g = self.cfg.geofence
+        if not form.drones:
+            return None, "select at least one drone for the plan"
+        dup = sorted({d for d in form.drones if form.drones.count(d) > 1})
+        if dup:
+            return None, f"drone {', '.join(dup)} named more than once: one slot per drone"
+        for name in ("center_north_m", "center_east_m", "radius_m", "altitude_m", "speed_m_s", "min_separation_m"):
+            v = getattr(form, name)
+            if not math.isfinite(v):
+                return None, f"{name} = {v} is not a number"
+        if form.radius_m <= 0:
+            return None, f"radius_m = {form.radius_m:g}: the radius must be positive"
+        if form.speed_m_s < 0:
+            return None, f"speed_m_s = {form.speed_m_s:g}: the speed must be ≥ 0 (direction sets the sense)"
+        if not g.min_altitude_m <= form.altitude_m <= g.max_altitude_m:
+            return None, (f"altitude_m = {form.altitude_m:g} is outside the fence's band "
+                          f"{g.min_altitude_m:g}..{g.max_altitude_m:g} m")
+        if math.hypot(form.center_north_m, form.center_east_m) + form.radius_m > g.radius_m:
+            return None, (f"the orbit (centre {form.center_north_m:g}, {form.center_east_m:g} m, radius "
+                          f"{form.radius_m:g} m) leaves the fence's {g.radius_m:g} m circle")
+        n = len(form.drones)
+        if n > 1:
+            chord = 2 * form.radius_m * math.sin(math.pi / n)
+            if chord < form.min_separation_m:
+                return None, (f"separation not feasible: {n} drones on a {form.radius_m:g} m circle are "
+                              f"{chord:.1f} m apart, under min_separation_m = {form.min_separation_m:g} m; "
+                              f"use a radius ≥ {form.min_separation_m / (2 * math.sin(math.pi / n)):.1f} m")
+        if form.direction not in (1, -1):
+            return None, f"direction = {form.direction}: 1 (clockwise) or -1"
+        try:
+            plan = make_orbit_plan(form.drones, (form.center_north_m, form.center_east_m, 0.0), form.radius_m,
+                                   form.altitude_m, form.speed_m_s / form.radius_m, form.direction,
+                                   min_separation_m=form.min_separation_m)
+        except FleetError as e:
+            return None, str(e)
+        return plan, ""
+
+    def send_plan(self, form: PlanForm) -> tuple[CommandRun | None, str]:
+        plan, why = self.validate_plan(form)
+        if plan is None:
+            self.log_event("warning", "", f"plan not sent: {why}")
+            return None, why
+        self.client.send_plan(plan)
+        self.plan = plan
+        run = CommandRun("plan", list(form.drones), {d: plan.plan_id for d in form.drones}, self.clock(),
+                         self.cfg.ui.command_timeout_s)
+        self.runs.append(run)
+        self.log_event("info", "", f"plan {plan.plan_id} sent to {', '.join(form.drones)}: radius "
+                       f"{plan.radius_m:g} m, altitude {plan.altitude_m:g} m, {form.speed_m_s:g} m/s")
+        return run, ""
+
+    # --- commands ---------------------------------------------------------------------------------
+    def precheck(self, action: str, targets: list[str]) -> dict[str, str]:
+        """{drone: why the app will not send ``action`` to it}: stale link (except land / return), failing
+        checklist for take-off without an override."""
+        out = {}
+        for d in targets:
+            r = self.row(d)
+            if action not in SAFE_ACTIONS and r.stale:
+                out[d] = ("link stale: " + ("no message yet" if r.age_s is None else
+                                            f"last message {r.age_s:.1f} s ago") + " (land / return are still sent)")
+            elif action == "takeoff" and d not in self.overrides and not self.checklist_ok(d):
+                failing = ", ".join(c.name for c in self.checklist(d) if not c.ok)
+                out[d] = f"pre-flight checklist failing ({failing}): fix it or override (logged)"
+        return out
+
+    def command(self, action: str, targets: list[str], params: dict[str, float] | None = None) -> CommandRun:
+        """Send ``action`` to each of ``targets`` (one command per drone, so that each answer is its own) unless
+        :meth:`precheck` refuses it; never blocks: read the results from :meth:`CommandRun.results`."""
+        if action not in ACTIONS and action not in ("arm", "disarm"):
+            raise FleetError(f"unknown action {action!r}: one of {', '.join(ACTIONS)}")
+        if not targets:
+            raise FleetError(f"'{action}': select at least one drone (or use the land-all button)")
+        refused = self.precheck(action, targets)
+        ids = {}
+        for d in targets:
+            if d in refused:
+                continue
+            ids[d] = self.client.send_command(action, d, params).command_id
+        run = CommandRun(action, list(targets), ids, self.clock(), self.cfg.ui.command_timeout_s,
+                         refused_here=refused, override=any(d in self.overrides for d in targets))
+        self.runs.append(run)
+        self.log_event("info", "", f"{ACTIONS.get(action, action)} sent to {', '.join(ids) or 'nobody'}"
+                       + (f"; not sent to {', '.join(f'{d} ({w})' for d, w in refused.items())}" if refused else ""))
+        for d, why in refused.items():
+            self.log_event("alert", d, f"{action} NOT SENT: {why}")
+        return run
+
+    def land_all(self) -> CommandRun:
+        """Land every drone known (one action, no confirmation: bringing the fleet down is never blocked)."""
+        targets = self.drone_ids()
+        if not targets:
+            self.log_event("alert", "", "LAND ALL: no drone known to land")
+        ids = {d: self.client.send_command("land", d).command_id for d in targets}
+        run = CommandRun("land", targets, ids, self.clock(), self.cfg.ui.command_timeout_s)
+        self.runs.append(run)
+        self.log_event("alert", "", f"LAND ALL sent to {', '.join(targets) or 'nobody'}")
+        return run
+
+    def results(self, run: CommandRun) -> dict[str, tuple[str, str]]:
+        return run.results(list(self.client.acks), self.clock())
+
+    def close(self) -> None:
+        for s in self._subs:
+            try:
+                s.close()
+            except Exception:
+                pass

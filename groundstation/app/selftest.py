@@ -1,0 +1,177 @@
+"""``skycap gs --selftest DIR``: a whole operator session, offscreen, against the built-in simulated fleet, through
+the app's own widgets and actions; a PNG of the window after each step and ``DIR/selftest.json``.
+
+Steps: fleet up -> a plan with a bad field (refused, reason shown) -> plan the orbit (clicked centre; each drone
+accepts) -> checklist -> arm + take off (slide to confirm) -> start -> watch (map, live view) -> LAND ALL ->
+flight ended (agents stop, recordings closed) -> process flight (``skycap reconstruct``) -> result.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Callable
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run_selftest", "pump_until"]
+
+
+def pump_until(pred: Callable[[], bool], timeout_s: float, step_s: float = 0.05) -> bool:
+    """Run the Qt event loop until ``pred()`` holds (True) or ``timeout_s`` passed (False)."""
+    from PySide6.QtWidgets import QApplication
+
+    t_end = time.monotonic() + timeout_s
+    while True:
+        QApplication.processEvents()
+        if pred():
+            return True
+        if time.monotonic() >= t_end:
+            return False
+        time.sleep(step_s)
+
+
+def pump(seconds: float) -> None:
+    pump_until(lambda: False, seconds)
+
+
+def run_selftest(out: str | Path, drones: int = 2, orbit_s: float = 20.0, process: bool = True,
+                 process_timeout_s: float = 600.0) -> dict:
+    """Run the scripted session; returns (and writes) the selftest.json content."""
+    from PySide6.QtCore import QPoint, Qt
+    from PySide6.QtTest import QTest
+    from PySide6.QtWidgets import QApplication
+
+    from groundstation.app.config import GsConfig
+    from groundstation.app.session import GsSession
+    from groundstation.app.window import MainWindow
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    app = QApplication.instance() or QApplication(["skycap-gs-selftest"])
+    cfg = GsConfig(flights_dir=str(out / "flights"))
+    steps: list[dict] = []
+    report: dict = {"steps": steps, "processed": None, "drones": drones, "orbit_s": orbit_s}
+    session = GsSession.open(cfg, sim_drones=drones, sim_out=out / "flights" / "selftest-flight")
+    win = MainWindow(session.model, session.cfg, title="skycap ground station (self-test)")
+    win.resize(1600, 950)
+    win.show()
+    m = session.model
+    ids = session.sim.ids
+    t0 = time.monotonic()
+
+    def step(name: str, ok: bool, detail: str, tab: str | None = None) -> bool:
+        if tab:
+            win.show_tab(tab)
+        pump(0.3)
+        shot = out / f"{len(steps) + 1:02d}_{name}.png"
+        win.grab().save(str(shot))
+        steps.append({"name": name, "ok": bool(ok), "screenshot": shot.name, "detail": detail,
+                      "t_s": round(time.monotonic() - t0, 1)})
+        (log.info if ok else log.error)("self-test step %s: %s - %s", name, "ok" if ok else "FAILED", detail)
+        return ok
+
+    def states(want: set[str]) -> bool:
+        return all(session.client.healths.get(d) is not None and session.client.healths[d].state in want for d in ids)
+
+    def results_of(run) -> dict:
+        return m.results(run) if run is not None else {}
+
+    try:
+        ok = pump_until(lambda: all(d in session.client.states and session.client.states[d].health_ok
+                                    and d in session.client.healths for d in ids), 120)
+        if not step("fleet_up", ok, f"{len(ids)} simulated drones present and healthy" if ok else
+                    f"drones not healthy within 120 s; dead processes: {session.sim.dead()}", "Map / plan"):
+            return report
+        # a plan with a bad field: refused before sending, the reason shown
+        win.plan_fields["radius_m"].setText("-2")
+        QTest.mouseClick(win.send_plan_btn, Qt.LeftButton)
+        why = win.plan_reason.text()
+        step("plan_refused_bad_field", "radius" in why and "NOT SENT" in why, why, "Map / plan")
+        # the orbit: centre by a click on the map, then each drone's acknowledgement
+        win.plan_fields["radius_m"].setText("8")
+        win.plan_fields["altitude_m"].setText("6")
+        win.plan_fields["speed_m_s"].setText("1.5")
+        c = win.map.to_px(0.0, 0.0)
+        QTest.mouseClick(win.map, Qt.LeftButton, Qt.NoModifier, QPoint(int(c.x()), int(c.y())))
+        QTest.mouseClick(win.send_plan_btn, Qt.LeftButton)
+        ok = pump_until(lambda: win.plan_run is not None and all(r == "accepted" for r, _ in
+                                                                  results_of(win.plan_run).values()), 10)
+        step("plan_orbit", ok, f"centre ({win.plan_fields['center_north_m'].text()}, "
+             f"{win.plan_fields['center_east_m'].text()}) m by click; acks {results_of(win.plan_run)}", "Map / plan")
+        # checklist
+        win.show_tab("Checklist")
+        pump(0.5)
+        failing = {d: [c.name for c in m.checklist(d) if not c.ok] for d in ids}
+        if any(failing.values()):
+            win.select_drones([d for d, f in failing.items() if f])
+            win.override_reason.setText("self-test: simulated fleet")
+            QTest.mouseClick(win.override_btn, Qt.LeftButton)
+        step("checklist", True, f"failing checks: {failing or 'none'}"
+             + ("; overridden by the operator (logged)" if any(failing.values()) else "; all pass"), "Checklist")
+        # arm + take off with the slide-to-confirm naming every target
+        win.show_tab("Map / plan")
+        win.select_drones(None)
+        QTest.mouseClick(win.cmd_buttons["takeoff"], Qt.LeftButton)
+        pump(0.2)
+        named = all(d in win.confirm.label.text() for d in ids)
+        step("takeoff_confirm", win.confirm.armed and named, win.confirm.label.text())
+        win.confirm.slide()
+        ok = pump_until(lambda: win.last_run is not None and all(r in ("accepted", "completed") for r, _ in
+                                                                  results_of(win.last_run).values()), 10)
+        ok = ok and pump_until(lambda: states({"hover"}), 60)
+        step("takeoff", ok, f"results {results_of(win.last_run)}; states "
+             f"{ {d: session.client.healths[d].state for d in ids} }")
+        if not ok:
+            return report
+        QTest.mouseClick(win.cmd_buttons["start"], Qt.LeftButton)
+        win.confirm.slide()
+        ok = pump_until(lambda: win.last_run is not None and win.last_run.action == "start" and all(
+            r in ("accepted", "completed") for r, _ in results_of(win.last_run).values()), 10)
+        ok = ok and pump_until(lambda: states({"orbit"}), 20)
+        step("start", ok, f"results {results_of(win.last_run)}")
+        t_orbit = time.monotonic()
+        pump(orbit_s / 2)
+        thumbs = dict(m.thumb_count)
+        step("watch_live_view", True, f"thumbnails received {thumbs or 'none (the simulator camera publishes none)'}",
+             "Live view")
+        pump(max(0.0, orbit_s - (time.monotonic() - t_orbit)))
+        rows = m.rows()
+        step("watch_map", all(not r.stale for r in rows),
+             "; ".join(f"{r.drone} {r.state} at ({r.north_m:.1f}, {r.east_m:.1f}) alt {r.altitude_m:.1f} m" for r in rows),
+             "Map / plan")
+        QTest.mouseClick(win.land_all_btn, Qt.LeftButton)
+        ok = pump_until(lambda: states({"landed", "idle"}), 90)
+        step("land_all", ok, f"results {results_of(win.last_run)}; states "
+             f"{ {d: session.client.healths[d].state for d in ids} }")
+        flight_dir = session.sim.out
+        session.sim.stop()  # the agents close their recordings
+        session.sim = None
+        step("flight_ended", True, f"agents stopped; recordings in {flight_dir}", "Flights")
+        if not process:
+            return report
+        win.refresh_flights()
+        for i in range(win.flights.count()):
+            if win.flights.item(i).data(Qt.UserRole) == str(flight_dir):
+                win.flights.setCurrentRow(i)
+        QTest.mouseClick(win.process_btn, Qt.LeftButton)
+        pump(3)
+        step("process_flight_running", win.job is not None, win.job_stage.text(), "Flights")
+        ok = pump_until(lambda: win.job is not None and win.job.progress()[0] != "running", process_timeout_s)
+        if not ok and win.job is not None:
+            win.job.cancel()
+        pump(1.5)
+        res = win.job_result
+        report["processed"] = res["summary"] if res else None
+        report["processed_outputs"] = res["outputs"] if res else None
+        step("process_flight_result", res is not None, win.job_stage.text() + " | " +
+             win.job_result_view.toPlainText()[:300], "Flights")
+        step("event_log", True, f"{len(m.events)} events, {len(m.alerts())} alerts", "Event log")
+        return report
+    finally:
+        report["ok"] = bool(steps) and all(s["ok"] for s in steps)
+        (out / "selftest.json").write_text(json.dumps(report, indent=2, default=str))
+        win.close()
+        session.close()

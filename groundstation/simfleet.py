@@ -1,0 +1,186 @@
+"""The built-in simulated fleet for ``skycap gs --sim N``: simulator, one camera node and one agent per drone.
+
+NOTE: this repeats the process launching of :func:`apps.demo.run_demo` (same commands and ``--set`` options:
+``skycap sim``, ``python -m simulator.scene.node``, ``skycap agent``), because the ground station sits below
+``apps`` in the import layers and cannot import it (nor :class:`apps.supervisor.ProcessSupervisor`, which
+:class:`SimProcesses` mirrors). The two should be unified (e.g. move the launcher into a lower layer).
+
+    fleet = SimFleet.prepare(n=2, out="flights/gs-...")   # temporary CA, free endpoint and ports
+    bus = Transport.open(TransportConfig.rendezvous(fleet.endpoint, fleet.keys_dir), "gs", identity="gcs")
+    fleet.start()                                           # the processes join the app's rendezvous
+    ...
+    fleet.stop()
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from comms.security import FleetKeys
+from flightdata.folder import FlightFolder
+from onboard.orbit import evenly_spaced_phases
+from shared_msgs import keys
+from skycap.errors import SkycapError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SimFleet", "SimProcesses", "free_tcp_port", "free_udp_base"]
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def free_udp_base(n: int, lo: int = 30000, hi: int = 60000) -> int:
+    import random
+
+    for _ in range(200):
+        base = random.randint(lo, hi - n)
+        socks = []
+        try:
+            for i in range(n):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                s.bind(("0.0.0.0", base + i))
+                socks.append(s)
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise SkycapError(f"no {n} consecutive free UDP ports in {lo}..{hi}")
+
+
+class SimProcesses:
+    """Child processes, each in its own process group with its own log (mirrors apps.supervisor.ProcessSupervisor)."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = log_dir
+        self.items: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        with open(self.log_dir / f"{name}.log", "w") as f:
+            log.info("starting %s: %s", name, " ".join(cmd))
+            p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        self.items.append((name, p))
+        return p
+
+    def dead(self) -> dict[str, int]:
+        return {n: p.returncode for n, p in self.items if p.poll() is not None}
+
+    def stop(self, names: list[str] | None = None, timeout_s: float = 20.0) -> dict[str, int]:
+        chosen = [(n, p) for n, p in self.items if names is None or n in names]
+        for _, p in chosen:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        codes = {}
+        t_end = time.monotonic() + timeout_s
+        for n, p in chosen:
+            try:
+                codes[n] = p.wait(max(0.1, t_end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.error("%s did not stop within %.0f s: killing it", n, timeout_s)
+                os.killpg(p.pid, signal.SIGKILL)
+                codes[n] = p.wait()
+        return codes
+
+
+@dataclass
+class SimFleet:
+    """A simulated fleet of ``len(ids)`` drones spawned under the slots of an orbit of ``radius_m`` around the
+    origin, recording into ``out`` (a new flight folder), secured by a temporary fleet CA in ``keys_dir``."""
+
+    ids: list[str]
+    out: Path
+    endpoint: str
+    keys_dir: str
+    fleet: str = "gs-sim"
+    radius_m: float = 8.0
+    altitude_m: float = 6.0
+    cameras: bool = True
+    sim_set: list[str] = field(default_factory=list)
+    _procs: SimProcesses | None = None
+    _temp_keys: Path | None = None
+
+    @classmethod
+    def prepare(cls, n: int, out: str | Path, fleet: str = "gs-sim", radius_m: float = 8.0, altitude_m: float = 6.0,
+                cameras: bool = True, keys_dir: str = "") -> "SimFleet":
+        if n < 1:
+            raise SkycapError(f"--sim {n}: the simulated fleet needs at least one drone")
+        ids = [f"drone_{i + 1}" for i in range(n)]
+        flight = FlightFolder(out)
+        if flight.has_recordings() or flight.summary_path.exists():
+            raise SkycapError(f"{flight.path} already holds a flight; recordings are never overwritten: choose a new "
+                              "flight folder")
+        temp = None
+        if not keys_dir:
+            temp = Path(tempfile.mkdtemp(prefix="skycap-gs-keys-"))
+            fk = FleetKeys.create(temp / "fleet", fleet, drones=ids, sim=True, days=2)
+            keys_dir = str(fk.folder)
+            log.info("simulated fleet: a temporary fleet CA in %s (mutual TLS + ACL; deleted at the end)", keys_dir)
+        endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
+        return cls(ids=ids, out=flight.path, endpoint=endpoint, keys_dir=keys_dir, fleet=fleet, radius_m=radius_m,
+                   altitude_m=altitude_m, cameras=cameras, _temp_keys=temp)
+
+    @property
+    def net_args(self) -> list[str]:
+        return ["--zenoh-connect", self.endpoint, "--zenoh-keys", self.keys_dir]
+
+    def spawn_ne_m(self) -> list[tuple[float, float]]:
+        phases = evenly_spaced_phases(self.ids)
+        return [(round(self.radius_m * math.cos(phases[d]), 3), round(self.radius_m * math.sin(phases[d]), 3))
+                for d in self.ids]
+
+    def start(self) -> None:
+        """Start the simulator, the camera nodes and the agents (they join the rendezvous the app opened)."""
+        flight = FlightFolder(self.out)
+        flight.logs_dir.mkdir(parents=True, exist_ok=True)
+        self._procs = SimProcesses(flight.logs_dir)
+        py = [sys.executable, "-m", "apps.cli"]
+        base = free_udp_base(len(self.ids))
+        spawn = ", ".join(f"[{n}, {e}]" for n, e in self.spawn_ne_m())
+        look_down_deg = -math.degrees(math.atan2(self.altitude_m, self.radius_m))
+        sim = py + ["sim", "--fleet", self.fleet, *self.net_args, "--truth-hz", "20", "--out",
+                    str(flight.logs_dir / "sim"), "--status-every", "10", "--gimbal-pitch-deg", f"{look_down_deg:.2f}"]
+        for s in [f"vehicles.count={len(self.ids)}", f"ports.offboard_base={base}", "ports.local_base=0",
+                  "ports.gcs_port=0", f"vehicles.spawn_ne_m=[{spawn}]", *self.sim_set]:
+            sim += ["--set", s]
+        self._procs.start("sim", sim)
+        if self.cameras:
+            for d in self.ids:
+                self._procs.start(f"camera_{d}", [sys.executable, "-m", "simulator.scene.node", "--drone-id", d,
+                                                  "--fleet", self.fleet, *self.net_args])
+        for i, d in enumerate(self.ids):
+            self._procs.start(d, py + ["agent", "--drone-id", d, "--fleet", self.fleet, "--connection",
+                                       f"udpin://0.0.0.0:{base + i}", "--record-dir", str(self.out), *self.net_args])
+
+    def dead(self) -> dict[str, int]:
+        """Processes that exited: {name: exit code}."""
+        return self._procs.dead() if self._procs else {}
+
+    def stop_agent(self, drone_id: str) -> None:
+        """Stop one drone's agent (tests: a link that goes stale / lost)."""
+        if self._procs:
+            self._procs.stop([drone_id], timeout_s=10.0)
+
+    def stop(self) -> None:
+        if self._procs is not None:
+            self._procs.stop([d for d in self.ids], timeout_s=20.0)  # agents first: they close their recordings
+            self._procs.stop(None, timeout_s=10.0)
+            self._procs = None
+        if self._temp_keys is not None:
+            shutil.rmtree(self._temp_keys, ignore_errors=True)
+            self._temp_keys = None
