@@ -2,6 +2,7 @@
 
     job = ReconstructJob.submit("flights/f1")
     job.progress()   # (state, stage, elapsed_s): state "running" / "done" / "failed" / "cancelled"
+    job.fraction()   # 0..1 by the reconstruction's stages
     job.log()        # the process's output lines so far
     job.cancel()
     job.result()     # {"summary": {...}, "outputs": {...}} once done (None before; raises on failure)
@@ -34,8 +35,12 @@ class JobError(SkycapError):
     """A background job that failed (its log says why)."""
 
 
-_STAGE = re.compile(r"\b(reading|loading|fitting|fit|exporting|export|writing|smoothing|triangulat\w*|detect\w*|"
-                    r"observations?|keypoints?|sortie \d+)\b", re.I)
+#: the reconstruction's log lines that mark its stages -> (fraction done, stage shown); ``skycap reconstruct`` reports
+#: no fraction on a pipe (its bars need a terminal), so progress advances by these milestones
+_MILESTONES = (("read the whole flight", 0.15, "read the recordings"), ("read sortie", 0.15, "read the recordings"),
+               (" reconstruction of ", 0.2, "reading observations"), ("fit (", 0.3, "fitting the body model"),
+               ("fit of", 0.3, "fitting the body model"), ("wrote ", 0.95, "writing the outputs"))
+_LOG_LINE = re.compile(r"^\S+ \S+ (INFO|WARNING|ERROR) (\S+): (.*)$")
 
 
 class ReconstructJob:
@@ -47,6 +52,7 @@ class ReconstructJob:
         self._lines: list[str] = []
         self._lock = threading.Lock()
         self._stage = "starting"
+        self._fraction = 0.0
         self._state = "running"
         self._t0 = time.monotonic()
         self._t_wall0 = time.time()
@@ -74,9 +80,11 @@ class ReconstructJob:
             line = line.rstrip("\n")
             with self._lock:
                 self._lines.append(line)
-                m = _STAGE.search(line)
-                if m and not line.startswith((" ", "{", "}")):
-                    self._stage = line.strip()[:80]
+                m = _LOG_LINE.match(line)
+                if m:
+                    for marker, frac, stage in _MILESTONES:
+                        if marker in m.group(3) and frac >= self._fraction:
+                            self._fraction, self._stage = frac, stage
         code = self._proc.wait()
         with self._lock:
             self._t_end = time.monotonic()
@@ -91,6 +99,8 @@ class ReconstructJob:
                 except Exception as e:  # noqa: BLE001 - shown to the operator
                     self._state, self._error = "failed", f"no result: {e}"
             self._stage = self._state
+            if self._state == "done":
+                self._fraction = 1.0
 
     def _parse(self) -> dict:
         """The summary.json the method wrote (newest of the method folders) and where its outputs are."""
@@ -108,9 +118,15 @@ class ReconstructJob:
                             "files": sorted(p.name for p in d.iterdir())}}
 
     def progress(self) -> tuple[str, str, float]:
+        """(state, stage, elapsed_s): state "running", "done", "failed" or "cancelled"."""
         with self._lock:
             end = self._t_end if self._t_end is not None else time.monotonic()
             return self._state, self._stage, end - self._t0
+
+    def fraction(self) -> float:
+        """0..1 by the stages passed (1 when done)."""
+        with self._lock:
+            return 1.0 if self._state == "done" else self._fraction
 
     def log(self) -> list[str]:
         with self._lock:

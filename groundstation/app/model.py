@@ -272,8 +272,12 @@ class FleetModel:
             rates = h.rates_hz
             r.setpoint_hz, r.state_hz = rates.get("setpoint", 0.0), rates.get("state", 0.0)
             r.recorder = f"frames {rates.get('frame', 0.0):.0f} Hz"
-            det = rates.get("detections", rates.get("keypoints"))
-            r.detector = f"{det:.1f} Hz" if det is not None else "off (orbit mode)"
+            if "detections" in rates:
+                r.detector = f"detections {rates['detections']:.0f} Hz"
+            elif "keypoints" in rates:
+                r.detector = f"keypoints {rates['keypoints']:.0f} Hz"
+            else:
+                r.detector = "not reported"
             r.ok = r.ok and h.ok
         with self._lock:
             tgt = self.targets.get(d)

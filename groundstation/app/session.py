@@ -14,6 +14,7 @@ from groundstation.app.model import FleetModel
 from groundstation.fleet import FleetClient
 from groundstation.simfleet import SimFleet
 from shared_msgs import keys
+from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
@@ -25,6 +26,10 @@ class GsSession:
         self.cfg = cfg
         self.sim = sim
         net = cfg.network
+        if not net.keys_dir and net.endpoint.startswith(("tls/", "quic/")):
+            raise SkycapError(f"network.endpoint {net.endpoint} is TLS but network.keys_dir is empty: set "
+                              "--set network.keys_dir=DIR (the fleet folder made by `skycap keys`; the app presents "
+                              "its 'gcs' certificate), or for an INSECURE debugging session a tcp/ endpoint")
         if not net.keys_dir:
             log.warning("INSECURE ground station (network.keys_dir empty): plaintext Zenoh, no certificates, no access "
                         "control. Make a fleet folder with `skycap keys` and set network.keys_dir.")

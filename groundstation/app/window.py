@@ -155,6 +155,8 @@ class MapView(QWidget):
         p.setPen(QPen(RED, 2, Qt.DashLine))
         p.setBrush(Qt.NoBrush)
         p.drawEllipse(self.to_px(0, 0), g.radius_m * s, g.radius_m * s)
+        p.drawText(self.to_px(g.radius_m * 0.72, g.radius_m * 0.72), f"geofence {g.radius_m:g} m, "
+                   f"{g.min_altitude_m:g}-{g.max_altitude_m:g} m alt")
         plan = self.model.plan
         if plan is not None:
             c = self.to_px(plan.center_ned_m[0], plan.center_ned_m[1])
@@ -246,6 +248,7 @@ class ThumbGrid(QWidget):
         super().__init__()
         self.model = model
         self.grid = QGridLayout(self)
+        self.grid.setAlignment(Qt.AlignTop | Qt.AlignLeft)
         self.tiles: dict[str, tuple[QLabel, QLabel]] = {}
         self._shown: dict[str, int] = {}
         self.decoded = 0
@@ -599,7 +602,9 @@ class MainWindow(QMainWindow):
             return
         self.job_result = None
         self.model.log_event("info", "", f"process flight {path}: skycap reconstruct started")
-        self.job_progress.setRange(0, 0)  # busy: reconstruct reports stages, not a fraction
+        self.job_progress.setRange(0, 100)
+        self.job_progress.setValue(0)
+        self.job_progress.setFormat("%p % (by stage)")
         self.cancel_job_btn.setEnabled(True)
         self.process_btn.setEnabled(False)
         self.job_log.clear()
@@ -621,6 +626,7 @@ class MainWindow(QMainWindow):
         self._job_lines = len(lines)
         self.job_stage.setText(f"{state}: {stage} ({elapsed:.0f} s)")
         if state == "running":
+            self.job_progress.setValue(round(100 * job.fraction()))
             return
         self.job_timer.stop()
         self.job_progress.setRange(0, 100)

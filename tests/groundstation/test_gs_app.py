@@ -197,3 +197,11 @@ def test_stale_link_refused_here_and_no_answer_after_timeout(gs, qtbot):
     row = next(r for r in range(win.table.rowCount()) if _table_text(win.table, r, 0) == "drone_2")
     assert _table_text(win.table, row, 1).startswith("LOST")
     assert win.table.item(row, 2).foreground().color().name() == "#969696"  # greyed
+
+
+def test_tls_endpoint_without_fleet_folder_is_a_clear_error():
+    from groundstation.app.session import GsSession
+    from skycap.errors import SkycapError
+
+    with pytest.raises(SkycapError, match="network.keys_dir is empty"):
+        GsSession(GsConfig())
