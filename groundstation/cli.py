@@ -150,11 +150,22 @@ def _gs(args) -> int:
     from groundstation.app.session import GsSession
     from groundstation.app.window import MainWindow
 
+    import signal
+
+    from PySide6.QtCore import QTimer
+
     app = QApplication.instance() or QApplication(["skycap gs"])
     session = GsSession.open(cfg, sim_drones=args.sim)
     try:
         win = MainWindow(session.model, session.cfg)
         win.show()
+        # SIGINT / SIGTERM close the app like its window does (the simulated fleet stopped, the heartbeat ended);
+        # the timer lets Python run its signal handlers while Qt's loop runs
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: app.quit())
+        wake = QTimer()
+        wake.timeout.connect(lambda: None)
+        wake.start(300)
         return app.exec()
     finally:
         session.close()

@@ -328,8 +328,9 @@ class MainWindow(QMainWindow):
         tb.setMovable(False)
         self.addToolBar(tb)
         sec = "mutual TLS (gcs certificate)" if self.model.client.bus.secure else "INSECURE (plaintext)"
-        self.status_label = QLabel(f"  fleet {self.model.fleet}  |  {sec}  |  heartbeat "
-                                   f"{self.model.client.heartbeat_hz:g} Hz  ")
+        self._status_base = (f"  fleet {self.model.fleet}  |  {sec}  |  ground-station heartbeat "
+                             f"{self.model.client.heartbeat_hz:g} Hz: ")
+        self.status_label = QLabel(self._status_base)
         tb.addWidget(self.status_label)
         self.alert_label = QLabel("")
         self.alert_label.setStyleSheet("QLabel { color: white; background: #c01e1e; font-weight: bold; padding: 3px; }")
@@ -651,6 +652,8 @@ class MainWindow(QMainWindow):
     # --- refresh ----------------------------------------------------------------------------------
     def refresh(self) -> None:
         m = self.model
+        hb = m.client._hb_thread
+        self.status_label.setText(self._status_base + ("running" if hb is not None and hb.is_alive() else "STOPPED"))
         m.poll_alerts()
         rows = m.rows()
         self.map.rows = rows
