@@ -49,6 +49,9 @@ class GeofenceConfig:
 class GsConfig:
     fleet: str = "default"
     flights_dir: str = "flights"  #: where recorded flights are listed from
+    #: the event log (alerts, commands and answers, checklist overrides) is also appended to this file (relative to
+    #: ``flights_dir`` unless absolute); "" = kept in the window only
+    event_log: str = "gs-events.log"
     network: NetworkConfig = field(default_factory=NetworkConfig)
     ui: UiConfig = field(default_factory=UiConfig)
     checklist: ChecklistConfig = field(default_factory=ChecklistConfig)

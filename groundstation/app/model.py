@@ -19,7 +19,7 @@ from typing import Callable
 from groundstation.app.config import GsConfig
 from groundstation.fleet import FleetClient, FleetError, make_orbit_plan
 from shared_msgs import CameraFrame, Detections, OrbitPlan, TargetEstimate, keys
-from shared_msgs.messages import CameraInfo, CameraStatus, SimTruth
+from shared_msgs.messages import CameraInfo, CameraStatus, FormationPlan, SimTruth
 from skycap.frames import yaw_from_quat_wxyz
 
 log = logging.getLogger(__name__)
@@ -158,6 +158,7 @@ class FleetModel:
         self.camera_info: dict[str, CameraInfo] = {}
         self.camera_status: dict[str, CameraStatus] = {}
         self.targets: dict[str, TargetEstimate] = {}
+        self.formation: dict[str, FormationPlan] = {}  #: track mode: each drone's planned positions (MPC horizon)
         self.truth: SimTruth | None = None
         self.events: list[Event] = []
         self.runs: list[CommandRun] = []
@@ -174,8 +175,16 @@ class FleetModel:
             bus.subscribe(keys.all_drones_key(f, keys.TARGET), self._on_put("targets"), TargetEstimate),
             bus.subscribe(keys.all_drones_key(f, keys.DETECTIONS), self._on_put("detections"), Detections),
             bus.subscribe(keys.all_drones_key(f, keys.SIM_DETECTIONS), self._on_put("detections"), Detections),
+            bus.subscribe(keys.all_drones_key(f, keys.FORMATION_PLAN), self._on_put("formation"), FormationPlan),
             bus.subscribe(keys.sim_key(f, keys.TRUTH), self._on_truth, SimTruth),
         ]
+        self.event_file = None
+        if cfg.event_log:
+            from pathlib import Path
+
+            path = Path(cfg.flights_dir) / cfg.event_log
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.event_file = open(path, "a", buffering=1)
         self.log_event("info", "", f"ground station joined fleet {f!r} ({'mutual TLS, gcs certificate' if bus.secure else 'INSECURE plaintext'}); heartbeat {client.heartbeat_hz:g} Hz")
 
     # --- inputs (Zenoh threads) -------------------------------------------------------------------
@@ -202,6 +211,8 @@ class FleetModel:
         ev = Event(time.time(), level, drone, text)
         with self._lock:
             self.events.append(ev)
+            if self.event_file is not None:
+                self.event_file.write(ev.line() + "\n")
         (log.warning if level != "info" else log.info)("%s %s", drone or "gcs", text)
         return ev
 
@@ -449,3 +460,6 @@ class FleetModel:
                 s.close()
             except Exception:
                 pass
+        if self.event_file is not None:
+            self.event_file.close()
+            self.event_file = None

@@ -191,6 +191,12 @@ class MapView(QWidget):
             p.setBrush(QColor(160, 0, 160, 40))
             p.drawEllipse(c, max(3, 2 * se * s), max(3, 2 * sn * s))
             p.drawText(c + QPointF(8, 14), f"person est. ({d}, {t.status})")
+        for d, fp in list(self.model.formation.items()):  # track mode: each drone's planned path (MPC horizon)
+            pts = fp.positions_ned_m
+            if len(pts) >= 6:
+                p.setPen(QPen(QColor(230, 120, 0), 1, Qt.DashLine))
+                p.setBrush(Qt.NoBrush)
+                p.drawPolyline(QPolygonF([self.to_px(pts[i], pts[i + 1]) for i in range(0, len(pts) - 2, 3)]))
         for r in self.rows:
             if r.age_s is None:
                 continue

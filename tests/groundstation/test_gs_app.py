@@ -6,6 +6,7 @@ Order matters: the last test stops drone_2's agent (stale link, no answer)."""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -148,6 +149,7 @@ def test_checklist_failing_blocks_takeoff_until_override_then_fly_and_land_all(g
         qtbot.mouseClick(win.override_btn, Qt.LeftButton)
         assert any("CHECKLIST OVERRIDE" in e.text and "battery" in e.text for e in m.events)
         assert "CHECKLIST OVERRIDE" in win.log_view.toPlainText()
+        assert "CHECKLIST OVERRIDE" in (Path(m.cfg.flights_dir) / "gs-events.log").read_text()  # kept on disk too
         win.select_drones(["drone_1"])
         qtbot.mouseClick(win.cmd_buttons["takeoff"], Qt.LeftButton)
         assert "will NOT be sent" not in win.confirm.label.text()
