@@ -155,7 +155,7 @@ class MapView(QWidget):
         p.setPen(QPen(RED, 2, Qt.DashLine))
         p.setBrush(Qt.NoBrush)
         p.drawEllipse(self.to_px(0, 0), g.radius_m * s, g.radius_m * s)
-        p.drawText(self.to_px(g.radius_m * 0.72, g.radius_m * 0.72), f"geofence {g.radius_m:g} m, "
+        p.drawText(self.to_px(g.radius_m, 0) + QPointF(-70, -5), f"geofence {g.radius_m:g} m, "
                    f"{g.min_altitude_m:g}-{g.max_altitude_m:g} m alt")
         plan = self.model.plan
         if plan is not None:
@@ -225,13 +225,16 @@ class MapView(QWidget):
         alt = r.altitude_m
         if alt < 0.5:
             return None
+        info = self.model.camera_info.get(r.drone)
         plan = self.model.plan
-        if plan is not None:
+        yaw = r.yaw_rad
+        if info is not None:  # the camera's reported gimbal angles (pitch negative = down; yaw from the heading)
+            pitch, yaw = -info.gimbal_pitch_rad, r.yaw_rad + info.gimbal_yaw_rad
+        elif plan is not None:  # assumed: the gimbal looks at the plan's centre
             dist = math.hypot(plan.center_ned_m[0] - r.north_m, plan.center_ned_m[1] - r.east_m)
             pitch = math.atan2(alt, max(dist, 0.1))
         else:
             pitch = math.radians(45)
-        info = self.model.camera_info.get(r.drone)
         hfov = 2 * math.atan2(info.width_px / 2, info.fx_px) if info else math.radians(70)
         vfov = 2 * math.atan2(info.height_px / 2, info.fy_px) if info else math.radians(50)
         pts = []
@@ -240,7 +243,7 @@ class MapView(QWidget):
             if depress <= math.radians(3):
                 depress = math.radians(3)
             ground = alt / math.tan(depress)
-            bearing = r.yaw_rad + dh * hfov / 2
+            bearing = yaw + dh * hfov / 2
             pts.append((r.north_m + min(ground, 4 * self.half_m) * math.cos(bearing),
                         r.east_m + min(ground, 4 * self.half_m) * math.sin(bearing)))
         return pts
