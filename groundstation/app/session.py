@@ -30,6 +30,15 @@ class GsSession:
             raise SkycapError(f"network.endpoint {net.endpoint} is TLS but network.keys_dir is empty: set "
                               "--set network.keys_dir=DIR (the fleet folder made by `skycap keys`; the app presents "
                               "its 'gcs' certificate), or for an INSECURE debugging session a tcp/ endpoint")
+        if net.keys_dir:
+            from comms.security import FleetKeys
+
+            fleet_keys = FleetKeys.load(net.keys_dir)
+            if fleet_keys.fleet != cfg.fleet:
+                raise SkycapError(f"network.keys_dir {net.keys_dir} is the fleet folder of {fleet_keys.fleet!r}, the app "
+                                  f"is set to fleet {cfg.fleet!r}: pass --set fleet=\"{fleet_keys.fleet}\" (or the "
+                                  "fleet folder of the right fleet)")
+            fleet_keys.check(keys.GCS)
         if not net.keys_dir:
             log.warning("INSECURE ground station (network.keys_dir empty): plaintext Zenoh, no certificates, no access "
                         "control. Make a fleet folder with `skycap keys` and set network.keys_dir.")
