@@ -30,7 +30,6 @@ from pathlib import Path
 from comms.security import FleetKeys
 from flightdata.folder import FlightFolder
 from onboard.orbit import evenly_spaced_phases
-from shared_msgs import keys
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)

@@ -14,8 +14,9 @@ import time
 from pathlib import Path
 
 from PySide6.QtCore import QPointF, QRectF, Qt, QTimer, Signal
-from PySide6.QtGui import QAction, QBrush, QColor, QFont, QImage, QPainter, QPen, QPixmap, QPolygonF
-from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QFormLayout, QGridLayout, QGroupBox,
+from PySide6.QtGui import (QBrush, QColor, QFont, QImage, QKeySequence, QPainter, QPen, QPixmap, QPolygonF,
+                           QShortcut)
+from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QFormLayout, QGridLayout, QGroupBox,
                                QHBoxLayout, QHeaderView, QLabel, QLineEdit, QListWidget, QListWidgetItem,
                                QMainWindow, QPlainTextEdit, QProgressBar, QPushButton, QScrollArea, QSlider,
                                QSplitter, QTableWidget, QTableWidgetItem, QTabWidget, QToolBar, QVBoxLayout, QWidget)
@@ -352,6 +353,10 @@ class MainWindow(QMainWindow):
         self.land_all_btn.setStyleSheet("QPushButton { background: #c01e1e; color: white; font-weight: bold; "
                                         "padding: 6px 18px; }")
         self.land_all_btn.clicked.connect(self.land_all)
+        self.land_all_btn.setToolTip("Land every drone now (no confirmation; shortcut Ctrl+Shift+L)")
+        self.land_all_shortcut = QShortcut(QKeySequence("Ctrl+Shift+L"), self)
+        self.land_all_shortcut.setContext(Qt.ApplicationShortcut)
+        self.land_all_shortcut.activated.connect(self.land_all)
         tb.addWidget(self.land_all_btn)
 
         split = QSplitter(Qt.Horizontal)
