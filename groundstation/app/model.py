@@ -282,7 +282,8 @@ class FleetModel:
             r.warnings = list(h.warnings)
             rates = h.rates_hz
             r.setpoint_hz, r.state_hz = rates.get("setpoint", 0.0), rates.get("state", 0.0)
-            r.recorder = f"frames {rates.get('frame', 0.0):.0f} Hz"
+            # the agent's health gives the camera frames it records, not the recorder's file, size or drops
+            r.recorder = f"{rates.get('frame', 0.0):.0f} Hz"
             if "detections" in rates:
                 r.detector = f"detections {rates['detections']:.0f} Hz"
             elif "keypoints" in rates:

@@ -144,8 +144,10 @@ def run_selftest(out: str | Path, drones: int = 2, orbit_s: float = 20.0, proces
              "Map / plan")
         QTest.mouseClick(win.land_all_btn, Qt.LeftButton)
         ok = pump_until(lambda: states({"landed", "idle"}), 90)
+        disarmed = pump_until(lambda: not any(session.client.states[d].armed for d in ids), 20)
         step("land_all", ok, f"results {results_of(win.last_run)}; states "
-             f"{ {d: session.client.healths[d].state for d in ids} }")
+             f"{ {d: session.client.healths[d].state for d in ids} }; "
+             f"{'disarmed' if disarmed else 'still armed 20 s after landing'}")
         flight_dir = session.sim.out
         session.sim.stop()  # the agents close their recordings
         session.sim = None

@@ -307,7 +307,7 @@ class ThumbGrid(QWidget):
 class MainWindow(QMainWindow):
     """The ground station window over ``model``; ``flights_dir``: where recorded flights are listed from."""
 
-    COLUMNS = ["drone", "link", "state", "mode", "armed", "battery", "GPS", "pos ±m", "setpt Hz", "recorder",
+    COLUMNS = ["drone", "link", "state", "mode", "armed", "battery", "GPS", "pos ±m", "setpt Hz", "rec. frames",
                "detector", "tracker", "warnings"]
 
     def __init__(self, model: FleetModel, cfg: GsConfig, title: str = "skycap ground station"):
@@ -777,7 +777,9 @@ def format_result(res: dict) -> str:
         if isinstance(x, dict) and depth < 2:
             for k, v in x.items():
                 yield from flat(f"{prefix}{k}.", v, depth + 1)
-        elif isinstance(x, (int, float, str, bool)) and not isinstance(x, str) or (isinstance(x, str) and len(x) < 60):
+        elif isinstance(x, float):
+            yield f"{prefix[:-1]} = {x:.4g}"
+        elif isinstance(x, (int, bool)) or (isinstance(x, str) and len(x) < 60):
             yield f"{prefix[:-1]} = {x}"
 
     lines.append("summary:")
