@@ -195,7 +195,7 @@ class MapView(QWidget):
         for d, fp in list(self.model.formation.items()):  # track mode: each drone's planned path (MPC horizon)
             pts = fp.positions_ned_m
             if len(pts) >= 6:
-                p.setPen(QPen(QColor(230, 120, 0), 1, Qt.DashLine))
+                p.setPen(QPen(QColor(230, 120, 0), 2, Qt.DashLine))
                 p.setBrush(Qt.NoBrush)
                 p.drawPolyline(QPolygonF([self.to_px(pts[i], pts[i + 1]) for i in range(0, len(pts) - 2, 3)]))
         for r in self.rows:

@@ -178,6 +178,41 @@ def test_thumbnails_with_detection_boxes(gs, qtbot):
     assert win.thumbs.decoded == decoded
 
 
+def test_map_draws_the_person_estimate_ellipse_and_formation_paths(gs, qtbot):
+    """Track mode's messages (the orbit-mode simulated fleet sends none): a person estimate with its 2-sigma
+    ellipse and a drone's shared MPC path are drawn where they are."""
+    from shared_msgs import FormationPlan, TargetEstimate
+
+    session, win = gs
+    m = session.model
+    cov = [0.0] * 36
+    cov[0], cov[7] = 4.0, 1.0  # sigma north 2 m, east 1 m
+    m.targets["drone_1"] = TargetEstimate(header=TargetEstimate.make_header("drone_1"), position_ned_m=(5.0, 5.0, 0.0),
+                                          velocity_ned_m_s=(0.0, 0.0, 0.0), covariance=tuple(cov), num_sources=2)
+    m.formation["drone_1"] = FormationPlan(header=FormationPlan.make_header("drone_1"), t0_ns=0, dt_s=0.1,
+                                           positions_ned_m=(-10.0, -10.0, -5.0, -10.0, 10.0, -5.0, 0.0, 10.0, -5.0))
+    try:
+        win.show_tab("Map / plan")
+        img = win.map.grab().toImage()
+        c = win.map.to_px(5.0, 5.0)
+        s = win.map._scale()
+        # inside the ellipse (1.5 sigma north of the centre): the purple fill; outside (3 sigma): not
+        inside = img.pixelColor(round(c.x()), round(c.y() - 1.5 * 2.0 * s))
+        outside = img.pixelColor(round(c.x()), round(c.y() - 3 * 2.0 * s))
+        def purple(px):  # the translucent purple fill over the light background
+            return px.red() > px.green() + 10 and px.blue() > px.green() + 10
+
+        assert purple(inside) and not purple(outside), (inside.name(), outside.name())
+        mid = win.map.to_px(-10.0, 0.0)  # on the path's first leg, west to east at north -10: orange dashes
+        along = [img.pixelColor(round(mid.x()) + k, round(mid.y()) + dy) for k in range(12) for dy in (-1, 0, 1)]
+        assert any(px.red() > 200 and px.blue() < 120 for px in along), [px.name() for px in along]
+        off = [img.pixelColor(round(mid.x()) + k, round(mid.y()) + 15) for k in range(12)]  # 15 px beside it
+        assert not any(px.red() > 180 and px.blue() < 120 for px in off)
+    finally:
+        m.targets.pop("drone_1", None)
+        m.formation.pop("drone_1", None)
+
+
 def test_stale_link_refused_here_and_no_answer_after_timeout(gs, qtbot):
     """drone_2's agent stops: its row greys with its age, a start is not sent to it (stale link), a land is sent
     anyway and ends as 'no answer' after the timeout; link lost is an alert."""
@@ -207,3 +242,4 @@ def test_tls_endpoint_without_fleet_folder_is_a_clear_error():
 
     with pytest.raises(SkycapError, match="network.keys_dir is empty"):
         GsSession(GsConfig())
+
