@@ -134,9 +134,11 @@ def run_selftest(out: str | Path, drones: int = 2, orbit_s: float = 20.0, proces
         step("start", ok, f"results {results_of(win.last_run)}")
         t_orbit = time.monotonic()
         pump(orbit_s / 2)
-        thumbs = dict(m.thumb_count)
-        step("watch_live_view", True, f"thumbnails received {thumbs or 'none (the simulator camera publishes none)'}",
-             "Live view")
+        win.show_tab("Live view")
+        ok = pump_until(lambda: win.thumbs.showing() >= set(ids), 10)
+        step("watch_live_view", ok, f"thumbnails received {dict(m.thumb_count)}, shown for "
+             f"{sorted(win.thumbs.showing())} of {ids}, detections "
+             f"{ {d: len(m.detections[d].boxes) for d in ids if d in m.detections} }", "Live view")
         pump(max(0.0, orbit_s - (time.monotonic() - t_orbit)))
         rows = m.rows()
         step("watch_map", all(not r.stale for r in rows),

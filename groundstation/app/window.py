@@ -263,6 +263,10 @@ class ThumbGrid(QWidget):
         self._shown: dict[str, int] = {}
         self.decoded = 0
 
+    def showing(self) -> set[str]:
+        """The drones whose tile shows a decoded thumbnail."""
+        return set(self._shown)
+
     def refresh(self) -> None:
         if not self.isVisible():
             return
