@@ -66,6 +66,11 @@ async def run_agent(cfg: AgentConfig) -> int:
                 p.write_text(json.dumps(agent.tracking_stats()))
             except Exception as e:
                 log.error("%s: writing the tracking statistics failed: %s", cfg.drone_id, e)
+        if recorder is not None:
+            try:  # the messages received and refused (and why), per subscription, beside the recording
+                Sortie.of(recorder.path).transport_stats_path.write_text(json.dumps(bus.stats(), indent=1))
+            except Exception as e:
+                log.error("%s: writing the transport statistics failed: %s", cfg.drone_id, e)
         if camera is not None:
             camera.stop()
         if recorder is not None:
