@@ -21,7 +21,7 @@ def test_every_flood_message_is_refused_by_the_codec_on_the_keys_agents_listen_t
     bus = _Bus()
     inj = MalformedFloodInjector(bus, "f", ["drone_1", "drone_2"], rate_hz=100.0)
     for k in range(8):
-        inj.tick(k * 0.01)
+        inj.tick(k * 0.0125)
     assert inj.counts == {k: 2 for k in MalformedFloodInjector.KINDS}
     assert {key for key, _ in bus.sent} == {keys.drone_key("f", "drone_2", keys.STATE), keys.gcs_key("f", keys.CMD)}
     for key, data in bus.sent:
