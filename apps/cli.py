@@ -20,6 +20,7 @@ from skycap.logsetup import setup_logging
 #: Modules that contribute subcommands, in help order.
 COMMAND_MODULES = (
     "apps.demo",
+    "apps.faults",
     "simulator.cli",
     "simulator.scene.cli",
     "onboard.cli",
