@@ -521,10 +521,20 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                     if h is not None and h.state == "paused" and h.header.t_sent_ns * 1e-9 > fault_report["agent_restarted"]["t_s"]:
                         del pending["resume"]
                         # the latched plan is too old for the new agent to accept: send it again, then start it
-                        fleet.send_plan(plan)
-                        fleet.send_command("start", target=d)
-                        fault_report["agent_restarted"]["resumed_after_start_s"] = round(now - t_start, 2)
-                        log.warning("%s's restarted agent holds its vehicle (paused): plan and start re-sent", d)
+                        t_sent_ns = time.time_ns()
+                        fleet.send_plan(plan)  # then start, once it has the plan (the two keys are not ordered)
+                        fleet.wait_until(lambda f: any(a.command_id == plan.plan_id and a.header.sender_id == d and
+                                                       a.header.t_sent_ns > t_sent_ns for a in f.acks), 5.0, "plan ack")
+                        acks = [a for a in fleet.acks if a.command_id == plan.plan_id and a.header.sender_id == d
+                                and a.header.t_sent_ns > t_sent_ns]
+                        acks += fleet.command("start", target=d, wait_s=5.0,
+                                              results=("accepted", "refused", "failed")).values()
+                        fault_report["agent_restarted"].update(
+                            resumed_after_start_s=round(time.time() - t_start, 2),
+                            resume_acks=[f"{a.command_id}: {a.result}{': ' + a.reason if a.reason else ''}"
+                                         for a in acks])
+                        log.warning("%s's restarted agent holds its vehicle (paused): plan and start re-sent: %s", d,
+                                    fault_report["agent_restarted"]["resume_acks"])
                     elif now >= pending["resume"]:
                         del pending["resume"]
                         log.error("%s's restarted agent did not report paused within 60 s", d)

@@ -156,7 +156,7 @@ def judge_flight(flight_dir: str | Path, drone_ids: list[str], limits: SafetyLim
         sessions = logs.get(d, [])
         streams: dict[str, list[float]] = {"state": [], "camera/image": []}
         if sessions:
-            for m in SortieLogs([s.path for s in sessions]).messages(list(streams), decode=False):
+            for m in SortieLogs([s.path for s in sessions]).messages(list(streams), decode_messages=False):
                 streams[m.topic].append(m.log_time_ns * 1e-9)
         # the drone's window ends at its own touchdown when it came down before the final land command
         downs = [x for x in verdict["touchdowns_s"].get(d, []) if x < t_final_land_s]
