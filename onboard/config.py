@@ -143,6 +143,9 @@ class RecordConfig:
     enabled: bool = True
     #: folder of the flight; the agent writes ``<dir>/<drone_id>.mcap``
     dir: str = "flights/latest"
+    #: longest time between the recorder's fsyncs: the most of the recording an agent crash (kill -9, power
+    #: loss) loses at the end of its file (the fault suite's budget is 1 s per crash, restart included)
+    flush_interval_s: float = 0.25
     #: when the recorder fails (its writer died, an I/O error), open a new recording (the next sortie file) at
     #: most this often (s); a failure to open one (disk full) is retried as often
     reopen_interval_s: float = 5.0

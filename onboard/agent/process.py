@@ -32,7 +32,8 @@ async def run_agent(cfg: AgentConfig) -> int:
 
     def open_recorder() -> Recorder:
         # each start is a new sortie: a new file, so a restart never touches the last recording
-        rec = Recorder.new_sortie(cfg.record.dir, cfg.drone_id, metadata={"fleet": cfg.fleet, "connection": cfg.connection})
+        rec = Recorder.new_sortie(cfg.record.dir, cfg.drone_id, flush_interval_s=cfg.record.flush_interval_s,
+                                  metadata={"fleet": cfg.fleet, "connection": cfg.connection})
         save_config(cfg, Sortie.of(rec.path).config_path)
         return rec
 
