@@ -36,8 +36,17 @@ Fault injection (``faults.*``, :class:`FaultsDemoConfig`; simulation/chaos optio
 teammate messages dropped / teammates' detections delayed at every agent (the transport's receive-side
 fault layer, ``transport.fault``), one agent SIGKILLed mid-flight (its vehicle then lands on offboard loss;
 the others re-space), a GPS jump of one vehicle's estimate (in the simulator's estimator), malformed
-detections (NaN, inverted boxes, broken poses) published by this launcher on the drones' detection keys.
-What was injected goes into ``summary.json`` under ``faults``.
+detections (NaN, inverted boxes, broken poses) published by this launcher on the drones' detection keys, a flood
+of malformed states and commands (``malformed_flood_hz``), the killed agent restarted (``restart_agent_after_s``;
+from a warm ``--standby`` spare by default), the ground station's link lost (``gcs_link_lost_at_s``), one
+vehicle's MAVLink link lost for a while (``mavlink_loss_*``, the simulator's vehicle link), one recorder's disk
+full or its writer killed (``recorder_fault*``, signalled to that agent). What was injected goes into
+``summary.json`` under ``faults``; ``skycap faults run`` (:mod:`apps.faults`) flies the named scenarios.
+
+The demo finishes whatever state the drones end in: the final land goes only to the drones still flying; a
+drone already on the ground (landed by a failsafe, or by another client's command) or already landing is
+reported in ``summary.json`` (``drones.<id>.ended``), not an error; ``summary.json`` is always written (with
+``error`` when no orbit figures could be made) and the reconstruction runs on what was recorded.
 
 What it launches (each an OS process, as on the real system; logs in ``<out>/logs/``):
 

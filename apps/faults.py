@@ -62,6 +62,9 @@ class Scenario:
     crash: bool = False
     #: why it cannot run yet (not flown; reported with "safe": null)
     not_run: str = ""
+    #: the fault leaves nowhere to record (disk full): the faulted drone's recording is judged up to the fault
+    #: (none of it may be lost); what could not be recorded after it is reported, not judged
+    nowhere_to_record_after_fault: bool = False
 
 
 #: the scenarios, in the order they run
@@ -96,7 +99,8 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     Scenario("recorder_disk_full", "{d1}'s recording disk is full from 10 s after the start (simulated in the "
              "recorder: every further write fails with ENOSPC, no new file can be created): the drone keeps "
              "flying, reports it in its health, and what was written stays readable",
-             ('faults.recorder_fault_drone="{d1}"', 'faults.recorder_fault="disk_full"', "faults.recorder_fault_at_s=10")),
+             ('faults.recorder_fault_drone="{d1}"', 'faults.recorder_fault="disk_full"', "faults.recorder_fault_at_s=10"),
+             nowhere_to_record_after_fault=True),
     Scenario("recorder_killed", "{d1}'s recorder writer thread killed 10 s after the start (an injected error): the "
              "agent reports it and records on into a new file",
              ('faults.recorder_fault_drone="{d1}"', 'faults.recorder_fault="killed"', "faults.recorder_fault_at_s=10"),
@@ -255,9 +259,17 @@ def run_scenario(cfg: FaultsConfig, sc: Scenario, out: Path) -> dict:
                           geofence_radius_m=cfg.geofence_radius_m, geofence_max_alt_m=cfg.geofence_max_alt_m,
                           landing_by_policy=policy)
     judged = judge_flight(out, ids, limits, t_start_s, t_final_land_s, cfg.max_gap_s)
+    rf = ((summary or {}).get("faults") or {}).get("recorder_fault")
+    if sc.nowhere_to_record_after_fault and rf:
+        # judged up to the fault (what was written must all be there); after it there was nowhere to record
+        d = rf["drone"]
+        upto = judge_flight(out, [d], limits, t_start_s, min(rf["t_s"], t_final_land_s), cfg.max_gap_s)["drones"][d]
+        judged["drones"][d]["not_recordable_after_fault_s"] = judged["drones"][d]["recording_lost_s"]
+        judged["drones"][d]["recording_lost_s"] = upto["recording_lost_s"]
+        judged["drones"][d]["recording_gaps_before_fault"] = upto["recording_gaps"]
     lost = {d: judged["drones"][d]["recording_lost_s"] for d in ids}
     budget = cfg.max_lost_per_crash_s if sc.crash else 0.0
-    refused = _refused(flight, ids)
+    refused, fault_layer = _refused(flight, ids)
     ended = {d: ((summary or {}).get("drones", {}).get(d, {}) or {}).get("ended", "unknown (no summary)") for d in ids}
     warnings = _health_warnings(flight, ids)
     safe = judged["safe"] and not error
@@ -270,7 +282,7 @@ def run_scenario(cfg: FaultsConfig, sc: Scenario, out: Path) -> dict:
         touchdowns_after_start_s={d: [round(t - t_start_s, 2) for t in ts] for d, ts in judged["touchdowns_s"].items()},
         landing_by_policy=policy, unsafe_because=judged["unsafe_because"] + ([f"flight failed: {error}"] if error else []),
         drones={d: {"ended": ended[d], "health_warnings": warnings[d], "refused_messages": refused[d],
-                    **judged["drones"][d]} for d in ids},
+                    "fault_layer": fault_layer[d], **judged["drones"][d]} for d in ids},
         launcher_faults=(summary or {}).get("faults", {}),
     )
     return entry
@@ -293,17 +305,23 @@ def _final_land_time_s(flight, ids: list[str], t_start_s: float, duration_s: flo
     return best if best is not None else t_end_orbit
 
 
-def _refused(flight, ids: list[str]) -> dict[str, dict]:
-    """Per drone, the messages its transport refused, by subscription: count and the last reason (from every
-    agent start's ``.transport.json``)."""
+def _refused(flight, ids: list[str]) -> tuple[dict[str, dict], dict[str, dict]]:
+    """Per drone, the messages its transport refused, by subscription: count and the last reason; and the
+    simulated fault layer's counts (judged, dropped, delayed) -- from every agent start's ``.transport.json``
+    (an agent killed by SIGKILL wrote none)."""
     out: dict[str, dict] = {}
+    layer: dict[str, dict] = {}
     for d in ids:
         rows: dict[str, dict] = {}
+        fl = layer.setdefault(d, {"fault_judged": 0, "fault_dropped": 0, "fault_delayed": 0})
         for s in flight.sorties(d):
             p = s.transport_stats_path
             if not p.is_file():
                 continue
             for sub, st in json.loads(p.read_text()).items():
+                if isinstance(st, dict):
+                    for k in fl:
+                        fl[k] += int(st.get(k, 0))
                 if not isinstance(st, dict) or not st.get("malformed"):
                     continue
                 key = sub.split("#")[0].split("/", 3)[-1]  # skycap/v1/<fleet>/<node>/<topic> -> <node>/<topic>
@@ -311,7 +329,7 @@ def _refused(flight, ids: list[str]) -> dict[str, dict]:
                 row["refused"] += int(st["malformed"])
                 row["last_reason"] = st.get("last_error", "")[:200]
         out[d] = rows
-    return out
+    return out, layer
 
 
 def _health_warnings(flight, ids: list[str]) -> dict[str, list[str]]:
