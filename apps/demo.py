@@ -393,6 +393,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     agent_proc = {d: d for d in ids}  #: each drone's current agent process name
     agent_cmds: dict[str, list[str]] = {}
     ended: dict[str, str] = {}  #: how each drone's flight ended (summary.json drones.<id>.ended)
+    last_health: dict[str, dict] = {}  #: each drone's last health report seen by the fleet client
     pending: dict[str, float] = {}  #: scheduled launcher-side faults not yet done: name -> time (UNIX s)
     plans: list = []  #: every sortie's orbit plan, in order
     sortie_error: dict = {}  #: the sortie that failed after an orbit was flown, and why
@@ -615,6 +616,10 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                     log.error("landing after the failure: %s", e2)
                 break
     finally:
+        # each drone's last health as the fleet client saw it (its warnings: failsafes, a failed recorder -- which
+        # the drone's own recording may lack)
+        for d, h in dict(fleet.healths).items():
+            last_health[d] = {"state": h.state, "ok": h.ok, "warnings": list(h.warnings)}
         codes = procs.stop([agent_proc[d] for d in ids if agent_proc[d] not in killed], timeout_s=30.0)
         codes.update(procs.stop(None, timeout_s=15.0))
         bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM) and n not in killed}
@@ -649,6 +654,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         log.error("no orbit figures: %s", e)
         summary = {"flight_dir": str(out), "error": f"no orbit figures: {e}", "drones": {}, "fleet": {}}
     for d in ids:
+        if d in last_health:
+            summary["drones"].setdefault(d, {})["last_health"] = last_health[d]
         summary["drones"].setdefault(d, {})["ended"] = ended.get(d) or (
             "agent killed (SIGKILL), not restarted: its vehicle was left to the autopilot's offboard-loss action"
             if d in down else "unknown (the flight did not reach its final land command)")

@@ -272,6 +272,10 @@ def run_scenario(cfg: FaultsConfig, sc: Scenario, out: Path) -> dict:
     refused, fault_layer = _refused(flight, ids)
     ended = {d: ((summary or {}).get("drones", {}).get(d, {}) or {}).get("ended", "unknown (no summary)") for d in ids}
     warnings = _health_warnings(flight, ids)
+    for d in ids:  # plus the last health the launcher saw (a drone whose recorder failed did not record it)
+        for w in ((summary or {}).get("drones", {}).get(d, {}).get("last_health") or {}).get("warnings", []):
+            if w not in warnings[d]:
+                warnings[d].append(w)
     safe = judged["safe"] and not error
     entry.update(
         safe=bool(safe), recording_lost_s=round(max(lost.values()), 3), recording_lost_s_by_drone=lost,

@@ -14,7 +14,9 @@ simulator's truth, each drone's recordings of every agent start) and applies the
   camera's frames (10 Hz); both stop only when the agent or its recorder does. Lost time = the gaps longer
   than ``max_gap_s`` in the union of the recorded ``state`` and ``camera/image`` log times, over every
   recording of that drone (a restarted agent writes a new ``drone_<i>.s<NNN>.mcap``; the gap across the
-  two files is the restart), from the plan's start to the end of the judged window. A gap in one stream that
+  two files is the restart), from the plan's start to the end of the judged window; the seam between two
+  files of one drone (last message of one, first of the next: the restart) always counts, however short. A
+  gap in one stream that
   the other one covers (no telemetry while the MAVLink link is down, the camera still recorded) is not lost
   recording; it is reported per stream (``stream_gaps_s``).
 """
@@ -33,8 +35,8 @@ from flightdata.folder import FlightFolder, natural_key, read_sim_truth
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SafetyLimits", "gaps_s", "geofence_excursions", "judge_flight", "judge_safety", "min_separation_m",
-           "recording_lost_s", "touchdowns_s"]
+__all__ = ["SafetyLimits", "gaps_s", "geofence_excursions", "judge_flight", "judge_safety", "lost_with_seams_s",
+           "min_separation_m", "recording_lost_s", "seams_s", "touchdowns_s"]
 
 
 @dataclass
@@ -109,6 +111,25 @@ def recording_lost_s(streams_t_s: list[np.ndarray], t0_s: float, t1_s: float, ma
     return float(sum(b - a for a, b in g)), g
 
 
+def seams_s(files_t_s: list[np.ndarray]) -> list[tuple[float, float]]:
+    """The gaps between consecutive recordings of one drone: (last log time of file k, first of file k+1) for
+    every pair of non-empty files in order."""
+    nonempty = [np.asarray(t, dtype=float) for t in files_t_s if len(t)]
+    return [(float(a.max()), float(b.min())) for a, b in zip(nonempty, nonempty[1:])]
+
+
+def lost_with_seams_s(gaps: list[tuple[float, float]], seams: list[tuple[float, float]], t0_s: float,
+                      t1_s: float) -> float:
+    """Seconds lost: the long ``gaps`` plus the ``seams`` (restarts) that no long gap already covers, each
+    clipped to [t0_s, t1_s]."""
+    total = sum(b - a for a, b in gaps)
+    for a, b in seams:
+        a, b = max(a, t0_s), min(b, t1_s)
+        if b > a and not any(ga <= a and b <= gb for ga, gb in gaps):
+            total += b - a
+    return float(total)
+
+
 def judge_safety(t_s: np.ndarray, pos_ned_m: np.ndarray, drone_ids: list[str], limits: SafetyLimits,
                  t_final_land_s: float) -> dict:
     """The safety verdict from the truth: t_s (T,), pos_ned_m (D, T, 3) world NED; ``t_final_land_s``: when
@@ -155,17 +176,24 @@ def judge_flight(flight_dir: str | Path, drone_ids: list[str], limits: SafetyLim
     for d in drone_ids:
         sessions = logs.get(d, [])
         streams: dict[str, list[float]] = {"state": [], "camera/image": []}
-        if sessions:
-            for m in SortieLogs([s.path for s in sessions]).messages(list(streams), decode_messages=False):
+        per_file: list[np.ndarray] = []
+        for s in sessions:
+            file_t: list[float] = []
+            for m in SortieLogs([s.path]).messages(list(streams), decode_messages=False):
                 streams[m.topic].append(m.log_time_ns * 1e-9)
+                file_t.append(m.log_time_ns * 1e-9)
+            per_file.append(np.asarray(file_t))
         # the drone's window ends at its own touchdown when it came down before the final land command
         downs = [x for x in verdict["touchdowns_s"].get(d, []) if x < t_final_land_s]
         t_end = min([t_final_land_s, *downs])
         arr = [np.asarray(v) for v in streams.values()]
-        lost, gaps = recording_lost_s(arr, t_start_s, t_end, max_gap_s)
+        _, gaps = recording_lost_s(arr, t_start_s, t_end, max_gap_s)
+        seams = seams_s(per_file)
+        lost = lost_with_seams_s(gaps, seams, t_start_s, t_end)
         per[d] = {
             "recordings": [s.path.name for s in sessions],
             "recording_lost_s": round(lost, 3),
+            "file_seams": [[round(a - t_start_s, 3), round(b - t_start_s, 3)] for a, b in seams],
             "recording_gaps": [[round(a - t_start_s, 2), round(b - t_start_s, 2)] for a, b in gaps],
             "stream_gaps_s": {k: round(sum(b - a for a, b in gaps_s(np.asarray(v), t_start_s, t_end, max_gap_s)), 3)
                               for k, v in streams.items()},

@@ -68,3 +68,19 @@ def test_safety_verdict_landing_by_policy_vs_uncommanded():
     close = np.stack([p1, p1 + np.array([2.0, 0, 0])])
     v = judge_safety(t, close, ids, SafetyLimits(min_separation_m=3.0), 30.0)
     assert v["safe"] is False and "separation" in v["unsafe_because"][0]
+
+
+def test_a_restart_seam_counts_however_short():
+    from evaluation.faults import lost_with_seams_s, seams_s
+
+    f1 = np.arange(0, 10.0, 0.02)
+    f2 = np.arange(10.3, 20, 0.02)  # 0.3 s between the files: under the 0.5 s gap threshold
+    lost, g = recording_lost_s([np.concatenate([f1, f2])], 0.0, 20.0, 0.5)
+    assert lost == 0.0 and not g
+    seams = seams_s([f1, np.zeros(0), f2])
+    assert len(seams) == 1 and abs(seams[0][0] - 9.98) < 1e-9 and abs(seams[0][1] - 10.3) < 1e-9
+    assert abs(lost_with_seams_s(g, seams, 0.0, 20.0) - 0.32) < 1e-6
+    # a seam inside a long gap is not counted twice
+    f3 = np.arange(12.0, 20, 0.02)
+    lost3, g3 = recording_lost_s([np.concatenate([f1, f3])], 0.0, 20.0, 0.5)
+    assert abs(lost_with_seams_s(g3, seams_s([f1, f3]), 0.0, 20.0) - lost3) < 1e-9
