@@ -20,7 +20,7 @@ start. The flight is then judged (:mod:`evaluation.faults`):
   and the messages each agent's transport refused, and why (``<drone>.s<NNN>.transport.json``).
 
 Writes ``DIR/faults.json`` (``{"scenarios": [{"name", "safe", "recording_lost_s", "what_happened", ...}]}``),
-``DIR/config.toml`` (this suite's resolved configuration) and prints a table. A scenario that cannot run yet
+``DIR/config.toml`` (this suite's resolved configuration) and the table (printed, and ``DIR/faults.txt``). A scenario that cannot run yet
 says so (``"safe": null``, ``what_happened``: why) and is not flown. Exit code 0 when every scenario that ran
 was safe and within its recording budget, 1 otherwise.
 """
@@ -360,10 +360,14 @@ def _what_happened(sc: Scenario, judged: dict, ended: dict, warnings: dict, faul
         if k in faults:
             f = faults[k]
             extra = f", resumed {f['resumed_after_start_s']:.1f} s" if "resumed_after_start_s" in f else ""
-            parts.append(f"{k.replace('_', ' ')} {f.get('drone', '')} at {f['after_start_s']:.1f} s{extra}".replace("  ", " "))
+            what = f" ({f['fault']})" if "fault" in f else ""
+            parts.append(f"{k.replace('_', ' ')} {f.get('drone', '')}{what} at {f['after_start_s']:.1f} s{extra}".replace("  ", " "))
     for d, e in ended.items():
         w = "; ".join(warnings[d][:3])
-        parts.append(f"{d}: {e}" + (f" [health: {w}]" if w else ""))
+        row = judged["drones"][d]
+        no_state = row["stream_gaps_s"].get("state", 0.0)
+        telemetry = f", no vehicle state recorded for {no_state:.1f} s" if no_state > 0.0 else ""
+        parts.append(f"{d}: {e}{telemetry}" + (f" [health: {w}]" if w else ""))
     if judged["unsafe_because"]:
         parts.append("UNSAFE: " + "; ".join(judged["unsafe_because"]))
     if error:
@@ -390,7 +394,9 @@ def run_faults(cfg: FaultsConfig) -> dict:
         report["wall_s"] = round(time.monotonic() - t0, 1)
         (out / "faults.json").write_text(json.dumps(report, indent=2))  # after each: a partial run is kept
         log.info("=== scenario %s: safe=%s, recording lost %s s", name, entry["safe"], entry["recording_lost_s"])
-    print(format_faults_table(report), flush=True)
+    table = format_faults_table(report)
+    (out / "faults.txt").write_text(table + "\n")
+    print(table, flush=True)
     print(f"faults: {out / 'faults.json'}", flush=True)
     return report
 
