@@ -72,8 +72,10 @@ import logging
 import math
 import os
 import signal
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,6 +84,7 @@ import msgspec
 
 from apps.supervisor import ProcessSupervisor
 from comms.faults import MalformedDetectionsInjector, MalformedFloodInjector
+from comms.security import FleetKeys
 from comms.transport import Transport, TransportConfig
 from evaluation.flight import (format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
                                summarize_tracking)
@@ -160,8 +163,9 @@ class FaultsDemoConfig:
     malformed_flood_hz: float = 0.0
     #: restart the killed agent (``kill_agent``) this many seconds after the kill (< 0: never; its vehicle then
     #: lands on offboard loss). Restarted, it records into a new file (``drone_<i>.s002.mcap``) and takes its
-    #: vehicle -- held by the autopilot's offboard-loss action meanwhile -- over paused; the launcher then
-    #: re-sends the plan and ``start`` to it
+    #: vehicle -- held by the autopilot's offboard-loss action meanwhile -- over by its
+    #: ``safety.on_restart_airborne`` (the fault suite's scenario: "resume"; then the launcher re-sends the plan
+    #: and ``start`` to it; "land": it lands, by policy)
     restart_agent_after_s: float = -1.0
     #: the restart wakes a warm spare agent started with the others (``skycap agent --standby``: everything
     #: imported, waiting for SIGUSR1) instead of starting a new process (a cold start: ~1-3 s of Python start and
@@ -193,8 +197,15 @@ class DemoConfig:
     #: the flight folder; empty: a new ``flights/demo-<UTC date>-<time>`` (an existing flight is never overwritten)
     out: str = ""
     fleet: str = "demo"
-    #: Zenoh rendezvous endpoint opened by this launcher
+    #: Zenoh rendezvous endpoint opened by this launcher; secure (the default), its protocol becomes ``tls``
     zenoh_endpoint: str = "tcp/127.0.0.1:7447"
+    #: plaintext Zenoh with no authentication or access control (``--insecure``): for debugging only; logged
+    #: loudly and written into ``summary.json`` (``security``)
+    insecure: bool = False
+    #: the fleet folder (``skycap keys``) whose certificates the processes present; empty: a new fleet CA and
+    #: one certificate per drone, the simulator and this launcher (the ground station) in a temporary folder,
+    #: deleted at the end (private keys never go into the flight folder)
+    keys_dir: str = ""
     #: first MAVLink port (vehicle i sends to mavlink_base + i; its agent listens there)
     mavlink_base: int = 14540
     orbit: OrbitDemoConfig = field(default_factory=OrbitDemoConfig)
@@ -310,6 +321,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--px4-dir", default=None, help="the PX4 SITL build for --autopilot px4 (default ../shared/px4-sitl)")
     p.add_argument("--sorties", type=int, default=None,
                    help="take off, orbit and land this many times without restarting anything (default 1)")
+    p.add_argument("--insecure", action="store_true", default=None,
+                   help="DEBUGGING ONLY: plaintext Zenoh, no certificates, no access control")
     add_config_args(p)
     p.set_defaults(func=_run)
 
@@ -319,7 +332,8 @@ def _run(args: argparse.Namespace) -> int:
                                                 "mode": getattr(args, "mode", None),
                                                 "autopilot": getattr(args, "autopilot", None),
                                                 "px4_dir": getattr(args, "px4_dir", None),
-                                                "sorties": getattr(args, "sorties", None)})
+                                                "sorties": getattr(args, "sorties", None),
+                                                "insecure": getattr(args, "insecure", None)})
     summary = run_demo(cfg.validate())
     return 0 if summary is not None and "sortie_error" not in summary else 1
 
@@ -381,8 +395,11 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     sim_set += cfg.sim_set
     save_config(cfg, flight.config_path)
     py = [sys.executable, "-m", "apps.cli"]
+    fleet_keys, temp_keys = _fleet_keys(cfg, ids)
+    endpoint, net_args = _network(cfg, fleet_keys)
     procs = ProcessSupervisor(logs)
-    bus = Transport.open(TransportConfig.rendezvous(cfg.zenoh_endpoint), "demo")
+    bus = Transport.open(TransportConfig.rendezvous(endpoint, keys_dir=str(fleet_keys.folder) if fleet_keys else ""),
+                         "demo", identity=keys.GCS)
     truth_rec = Recorder(flight.truth_path, node_id="sim", metadata={"fleet": cfg.fleet})
     truth_sub = bus.subscribe(keys.sim_key(cfg.fleet, keys.TRUTH), lambda rx: truth_rec.record_received("truth", rx),
                               SimTruth)
@@ -399,10 +416,11 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     sortie_error: dict = {}  #: the sortie that failed after an orbit was flown, and why
     orbits_flown = [0]  #: sorties whose orbit was flown to its end (landing may still have failed)
     fault_report: dict = {"config": {k: v for k, v in vars(cfg.faults).items()}}
+    closers: list = []  #: extra sessions to close at the end
     t_begin = time.monotonic()
     try:
         # 1. simulator (+ truth); 2. cameras; 3. agents
-        sim_cmd = py + ["sim", "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint, "--truth-hz",
+        sim_cmd = py + ["sim", "--fleet", cfg.fleet, *net_args, "--truth-hz",
                         str(cfg.truth_hz), "--out", str(logs / "sim"), "--status-every", "10",
                         "--gimbal-pitch-deg", f"{_look_down_deg(cfg):.2f}"]
         if px4:
@@ -422,14 +440,13 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         procs.start("sim", sim_cmd)
         if cfg.cameras:
             for i, d in enumerate(ids):
-                cmd = _camera_command() + ["--drone-id", d, "--fleet", cfg.fleet, "--zenoh-connect", cfg.zenoh_endpoint]
+                cmd = _camera_command() + ["--drone-id", d, "--fleet", cfg.fleet, *net_args]
                 for s in cfg.camera_set:
                     cmd += ["--set", s]
                 procs.start(f"camera_{d}", cmd)
         for i, d in enumerate(ids):
             cmd = py + ["agent", "--drone-id", d, "--fleet", cfg.fleet, "--connection",
-                        f"udpin://0.0.0.0:{mavlink_base + i}", "--record-dir", str(out),
-                        "--zenoh-connect", cfg.zenoh_endpoint]
+                        f"udpin://0.0.0.0:{mavlink_base + i}", "--record-dir", str(out), *net_args]
             if track:
                 # the camera node tags each frame with the drone's latest published estimate: publish it often
                 # so that the pose at capture is not up to 100 ms stale while the drone turns
@@ -463,8 +480,16 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         # track mode: the plan's centre is the operator's approximate start position of the person, its slots
         # the formation's angles (no turning: the formation follows the person)
         center = tuple(cfg.track.start_guess_ned_m) if track else tuple(o.center_ned_m)
-        injector = MalformedDetectionsInjector(bus, cfg.fleet, ids, fc.malformed_detections_hz) if fc.malformed_detections_hz > 0 else None
-        flood = MalformedFloodInjector(bus, cfg.fleet, ids, fc.malformed_flood_hz) if fc.malformed_flood_hz > 0 else None
+        injector = flood = None
+        if fc.malformed_detections_hz > 0 or fc.malformed_flood_hz > 0:
+            # a faulty teammate: its messages are published under the drones' own certificates (an outsider's
+            # could not even reach the fleet); the flood's malformed commands under the ground station's
+            impostor = _AsTheDrones(endpoint, fleet_keys, ids[:2])
+            closers.append(impostor.close)
+            if fc.malformed_detections_hz > 0:
+                injector = MalformedDetectionsInjector(impostor, cfg.fleet, ids, fc.malformed_detections_hz)
+            if fc.malformed_flood_hz > 0:
+                flood = MalformedFloodInjector(_ByKeyOwner(bus, impostor), cfg.fleet, ids, fc.malformed_flood_hz)
         def fly_sortie(sortie: int) -> None:
             alive = [d for d in ids if d not in down]
             if sortie > 1:
@@ -541,7 +566,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                 if "resume" in pending:
                     d = fc.kill_agent
                     h = fleet.healths.get(d)
-                    if h is not None and h.state == "paused" and h.header.t_sent_ns * 1e-9 > fault_report["agent_restarted"]["t_s"]:
+                    if h is not None and h.state in ("hover", "paused") and \
+                            h.header.t_sent_ns * 1e-9 > fault_report["agent_restarted"]["t_s"]:
                         del pending["resume"]
                         # the latched plan is too old for the new agent to accept: send it again, then start it
                         t_sent_ns = time.time_ns()
@@ -556,11 +582,11 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                             resumed_after_start_s=round(time.time() - t_start, 2),
                             resume_acks=[f"{a.command_id}: {a.result}{': ' + a.reason if a.reason else ''}"
                                          for a in acks])
-                        log.warning("%s's restarted agent holds its vehicle (paused): plan and start re-sent: %s", d,
+                        log.warning("%s's restarted agent took its vehicle over: plan and start re-sent: %s", d,
                                     fault_report["agent_restarted"]["resume_acks"])
                     elif now >= pending["resume"]:
                         del pending["resume"]
-                        log.error("%s's restarted agent did not report paused within 60 s", d)
+                        log.error("%s's restarted agent did not take its vehicle over (hover) within 60 s", d)
                 if "gcs_link" in pending and now >= pending["gcs_link"]:
                     del pending["gcs_link"]
                     fleet.stop_heartbeat()
@@ -625,10 +651,14 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM) and n not in killed}
         if bad:
             log.warning("processes that did not exit cleanly: %s", bad)
+        for close in closers:
+            close()
         fleet.close()
         truth_sub.close()
         truth_rec.close()
         bus.close()
+        if temp_keys:
+            shutil.rmtree(fleet_keys.folder.parent, ignore_errors=True)  # the mkdtemp folder
     log.info("flight done in %.0f s; files in %s", time.monotonic() - t_begin, out)
 
     recon: dict = {"ran": False}
@@ -668,6 +698,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         if sortie_error:
             summary["sortie_error"] = sortie_error
     summary["autopilot"] = _autopilot_report(cfg, px4_folder)
+    summary["security"] = _security_report(fleet_keys, temp_keys)
     if track:
         summary["mode"] = "track"
         summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
@@ -680,7 +711,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if cfg.faults != FaultsDemoConfig():
         summary["faults"] = fault_report
     flight.summary_path.write_text(json.dumps(summary, indent=2))
-    print(f"autopilot: {summary['autopilot']['kind']}", flush=True)
+    print(f"autopilot: {summary['autopilot']['kind']}; transport: {summary['security']['transport']}", flush=True)
     for entry in summary.get("sorties", []):
         print(f"sortie {entry['sortie']} (frames, rates, min_separation_m and flight_s: whole flight):\n"
               + format_table(entry), flush=True)
@@ -782,6 +813,72 @@ def _autopilot_report(cfg: DemoConfig, px4_folder: Path | None) -> dict:
             "truth": "SIH HIL_STATE_QUATERNION (true state), resampled to SimTruth at "
                      f"{cfg.truth_hz:g} Hz; altitudes above SIH's ground",
             "position_estimate": "PX4 EKF2 on SIH's simulated sensors"}
+
+
+def _fleet_keys(cfg: DemoConfig, ids: list[str]):
+    """(the fleet folder, whether it is a temporary one made here) -- (None, False) with ``insecure``."""
+    if cfg.insecure:
+        log.warning("INSECURE demo (--insecure): plaintext Zenoh, no certificates, no access control -- anyone on "
+                    "this machine's network can read the fleet and command it. For debugging only.")
+        return None, False
+    if cfg.keys_dir:
+        fleet_keys = FleetKeys.load(cfg.keys_dir)
+        if fleet_keys.fleet != cfg.fleet:
+            raise SkycapError(f"keys_dir {cfg.keys_dir} is fleet {fleet_keys.fleet!r}, the demo flies {cfg.fleet!r}: "
+                              f"set fleet = {fleet_keys.fleet!r} or make keys for {cfg.fleet!r}")
+        for ident in [keys.GCS, keys.SIM, *ids]:
+            fleet_keys.check(ident)
+        return fleet_keys, False
+    folder = Path(tempfile.mkdtemp(prefix="skycap-keys-")) / "fleet"
+    fleet_keys = FleetKeys.create(folder, cfg.fleet, drones=ids, sim=True, days=2)
+    log.info("secure fleet: a new CA and %d certificates in %s (mutual TLS + access control; deleted at the end)",
+             len(fleet_keys.identities), folder)
+    return fleet_keys, True
+
+
+def _network(cfg: DemoConfig, fleet_keys) -> tuple[str, list[str]]:
+    """The rendezvous endpoint (``tls/`` when secure) and the network options of every child process."""
+    endpoint = cfg.zenoh_endpoint
+    if fleet_keys is None:
+        return endpoint, ["--zenoh-connect", endpoint]
+    endpoint = "tls/" + endpoint.partition("/")[2]
+    return endpoint, ["--zenoh-connect", endpoint, "--zenoh-keys", str(fleet_keys.folder)]
+
+
+def _security_report(fleet_keys, temporary: bool) -> dict:
+    if fleet_keys is None:
+        return {"transport": "INSECURE (plaintext, no authentication, no access control: --insecure)",
+                "insecure": True}
+    return {"transport": "mutual TLS + Zenoh access control", "insecure": False,
+            "keys": "temporary fleet CA (deleted after the flight)" if temporary else str(fleet_keys.folder),
+            "identities": dict(sorted(fleet_keys.identities.items()))}
+
+
+class _AsTheDrones:
+    """``publish_raw`` under the certificate of the drone whose key it is (fault injection of a faulty teammate)."""
+
+    def __init__(self, endpoint: str, fleet_keys, drones: list[str]):
+        sec = str(fleet_keys.folder) if fleet_keys is not None else ""
+        self.buses = {d: Transport.open(TransportConfig.local_peer(endpoint, sec), f"faulty-{d}", identity=d)
+                      for d in drones}
+
+    def publish_raw(self, key: str, data: bytes) -> None:
+        self.buses[keys.parse_key(key)[1]].publish_raw(key, data)
+
+    def close(self) -> None:
+        for b in self.buses.values():
+            b.close()
+
+
+class _ByKeyOwner:
+    """``publish_raw`` on a ground-station key through the launcher's own session (the ground station's
+    certificate), on a drone's key through :class:`_AsTheDrones`."""
+
+    def __init__(self, gcs_bus: Transport, drones: _AsTheDrones):
+        self.gcs_bus, self.drones = gcs_bus, drones
+
+    def publish_raw(self, key: str, data: bytes) -> None:
+        (self.gcs_bus if keys.parse_key(key)[1] == keys.GCS else self.drones).publish_raw(key, data)
 
 
 def _camera_command() -> list[str]:

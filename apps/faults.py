@@ -77,9 +77,11 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
               'agent_set=["transport.fault.delay_topics=[\\"state\\", \\"health\\", \\"detections\\", '
               '\\"formation/plan\\", \\"target\\"]"]')),
     Scenario("agent_sigkill_restart", "{dlast}'s agent SIGKILLed mid-orbit (10 s after the start) and restarted at "
-             "once; its vehicle holds meanwhile (offboard-loss action), the new agent takes it over and is sent "
-             "the plan and start again",
-             ('faults.kill_agent="{dlast}"', "faults.kill_agent_at_s=10", "faults.restart_agent_after_s=0"),
+             "once (a warm standby agent woken, as a supervisor would); its vehicle holds meanwhile (offboard-loss "
+             "action), the new agent takes it over (safety.on_restart_airborne = resume) and is sent the plan and "
+             "start again",
+             ('faults.kill_agent="{dlast}"', "faults.kill_agent_at_s=10", "faults.restart_agent_after_s=0",
+              'agent_set=["safety.on_restart_airborne=\\"resume\\""]'),
              crash=True),
     Scenario("gcs_link_lost", "the ground station's link lost 10 s after the start (its heartbeat stops for good): "
              "the agents land by policy (safety.gcs_loss_action = land)",

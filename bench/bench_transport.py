@@ -3,6 +3,10 @@
     python bench/bench_transport.py                 # all (about 40 s)
     python bench/bench_transport.py --quick         # shorter runs
 
+Latency and throughput are measured twice: plaintext ``tcp/`` and the fleet's secure transport (``tls/``, mutual
+TLS with certificates from a fresh fleet CA and the fleet's Zenoh access control), with the CPU time both
+processes spent during the latency run.
+
 1. Latency: process A publishes VehicleState at 100 Hz and 40 KB CameraFrames at 10 Hz to process B
    (explicit tcp/127.0.0.1 endpoints, multicast scouting off, the default peer topology); B measures
    ``t_received_ns - header.t_sent_ns`` (same clock) including decode.
@@ -53,6 +57,8 @@ from shared_msgs import (  # noqa: E402
 )
 
 FLEET = "bench"
+CTL_KEY = keys.drone_key(FLEET, "drone_1", "bench/ctl")
+SUB_ALIVE_KEY = keys.drone_key(FLEET, "drone_1", "bench/sub_alive")
 EYE4 = tuple(float(x) for x in np.eye(4).reshape(-1))
 
 
@@ -83,14 +89,18 @@ def detections(i: int) -> Detections:
 
 
 # ------------------------------------------------------------------------------------------ subscriber
-def run_subscriber(endpoint: str) -> None:
-    """Child: subscribe to state + image; on a Health 'report' print JSON of latencies and counts."""
-    cfg = TransportConfig(listen=["tcp/127.0.0.1:0"], connect=[endpoint], multicast_scouting=False)
+def run_subscriber(endpoint: str, keys_dir: str = "") -> None:
+    """Child: subscribe to state + image; on a Health 'report' print JSON of latencies, counts and CPU seconds.
+
+    Both ends present drone_1's certificate when secure (the path of camera images: camera service -> agent on
+    one drone; the fleet ACL sends full-rate images to no one else)."""
+    cfg = TransportConfig.local_peer(endpoint, keys_dir)
     lat: dict[str, list[int]] = {"state": [], "camera/image": []}
     first_last: dict[str, list[int]] = {}
     nbytes: dict[str, int] = {"state": 0, "camera/image": 0}
     lock = threading.Lock()
     done = threading.Event()
+    cpu0 = [time.process_time()]
 
     def on_msg(rx) -> None:
         topic = keys.parse_key(rx.key)[2]
@@ -100,7 +110,7 @@ def run_subscriber(endpoint: str) -> None:
             fl = first_last.setdefault(topic, [rx.t_received_ns, rx.t_received_ns])
             fl[1] = rx.t_received_ns
 
-    with Transport.open(cfg, "bench_sub") as bus:
+    with Transport.open(cfg, "bench_sub", identity="drone_1") as bus:
         subs = [
             bus.subscribe(keys.drone_key(FLEET, "drone_1", keys.STATE), on_msg, VehicleState),
             bus.subscribe(keys.drone_key(FLEET, "drone_1", keys.CAMERA_IMAGE), on_msg, CameraFrame),
@@ -109,6 +119,7 @@ def run_subscriber(endpoint: str) -> None:
         def on_ctl(rx) -> None:
             with lock:
                 if rx.msg.state == "reset":
+                    cpu0[0] = time.process_time()
                     for v in lat.values():
                         v.clear()
                     first_last.clear()
@@ -116,25 +127,26 @@ def run_subscriber(endpoint: str) -> None:
                         nbytes[k] = 0
                     return
                 print(json.dumps({"lat": lat, "first_last": first_last, "bytes": nbytes,
+                                  "cpu_s": time.process_time() - cpu0[0],
                                   "malformed": sum(s.stats.malformed for s in subs)}), flush=True)
                 if rx.msg.state == "quit":
                     done.set()
 
-        bus.subscribe(keys.gcs_key(FLEET, "bench"), on_ctl, Health)
-        bus.declare_alive(keys.alive_key(FLEET, "bench_sub"))
+        bus.subscribe(CTL_KEY, on_ctl, Health)
+        bus.declare_alive(SUB_ALIVE_KEY)
         done.wait(600)
         time.sleep(0.2)
 
 
 # ------------------------------------------------------------------------------------------ publisher
 class Bench:
-    def __init__(self) -> None:
-        self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-        self.bus = Transport.open(TransportConfig(listen=[self.endpoint], connect=[], multicast_scouting=False), "bench")
+    def __init__(self, keys_dir: str = "") -> None:
+        self.endpoint = f"{'tls' if keys_dir else 'tcp'}/127.0.0.1:{free_tcp_port()}"
+        self.bus = Transport.open(TransportConfig.rendezvous(self.endpoint, keys_dir), "bench", identity="drone_1")
         self.joined = threading.Event()
-        self.bus.watch_presence(keys.alive_key(FLEET, "bench_sub"), on_join=lambda k: self.joined.set())
+        self.bus.watch_presence(SUB_ALIVE_KEY, on_join=lambda k: self.joined.set())
         self.child = subprocess.Popen(
-            [sys.executable, __file__, "--role", "sub", "--endpoint", self.endpoint],
+            [sys.executable, __file__, "--role", "sub", "--endpoint", self.endpoint, "--keys", keys_dir],
             stdout=subprocess.PIPE, text=True,
         )
         if not self.joined.wait(30):
@@ -142,10 +154,10 @@ class Bench:
         time.sleep(0.5)
         self.k_state = keys.drone_key(FLEET, "drone_1", keys.STATE)
         self.k_img = keys.drone_key(FLEET, "drone_1", keys.CAMERA_IMAGE)
-        self.k_ctl = keys.gcs_key(FLEET, "bench")
+        self.k_ctl = CTL_KEY
 
     def control(self, what: str) -> dict | None:
-        self.bus.publish(self.k_ctl, Health(header=Health.make_header("bench"), role="tool", state=what))
+        self.bus.publish(self.k_ctl, Health(header=Health.make_header("drone_1"), role="tool", state=what))
         if what == "reset":
             time.sleep(0.2)
             return None
@@ -161,9 +173,10 @@ def pct(v: list[int], q: float) -> float:
     return float(np.percentile(np.asarray(v) / 1e6, q)) if v else float("nan")
 
 
-def bench_latency(b: Bench, seconds: float) -> list[list[str]]:
+def bench_latency(b: Bench, seconds: float, label: str) -> list[list[str]]:
     rng = np.random.default_rng(0)
     b.control("reset")
+    cpu0 = time.process_time()
     n = int(seconds * 100)
     t_next = time.perf_counter()
     sent = {"state": 0, "camera/image": 0}
@@ -176,16 +189,18 @@ def bench_latency(b: Bench, seconds: float) -> list[list[str]]:
         t_next += 0.01
         time.sleep(max(0.0, t_next - time.perf_counter()))
     time.sleep(0.5)
+    cpu_pub = time.process_time() - cpu0
     r = b.control("report")
     rows = []
     for topic, size in (("state", "~0.6 KB"), ("camera/image", "40 KB")):
         v = r["lat"][topic]
-        rows.append([f"{topic} ({size}) at {100 if topic == 'state' else 10} Hz", f"{len(v)}/{sent[topic]}",
-                     f"{pct(v, 50):.2f}", f"{pct(v, 95):.2f}", f"{pct(v, 99):.2f}", f"{max(v) / 1e6:.2f}"])
+        rows.append([label, f"{topic} ({size}) at {100 if topic == 'state' else 10} Hz", f"{len(v)}/{sent[topic]}",
+                     f"{pct(v, 50):.2f}", f"{pct(v, 95):.2f}", f"{pct(v, 99):.2f}", f"{max(v) / 1e6:.2f}",
+                     f"{100 * cpu_pub / (seconds + 0.5):.2f} / {100 * r['cpu_s'] / (seconds + 0.5):.2f}"])
     return rows
 
 
-def bench_throughput(b: Bench, n_state: int, n_img: int) -> list[list[str]]:
+def bench_throughput(b: Bench, n_state: int, n_img: int, label: str) -> list[list[str]]:
     rng = np.random.default_rng(1)
     rows = []
     frames = [frame(i, rng) for i in range(16)]
@@ -204,7 +219,7 @@ def bench_throughput(b: Bench, n_state: int, n_img: int) -> list[list[str]]:
         got = len(r["lat"][topic])
         fl = r["first_last"].get(topic, [t0_wall_ns, t0_wall_ns + 1])
         dt_rx = max((fl[1] - t0_wall_ns) / 1e9, 1e-9)  # first publish -> last receive
-        rows.append([topic, str(n), f"{n / t_pub:,.0f}", f"{got} ({100 * got / n:.1f} %)", f"{got / dt_rx:,.0f}",
+        rows.append([label, topic, str(n), f"{n / t_pub:,.0f}", f"{got} ({100 * got / n:.1f} %)", f"{got / dt_rx:,.0f}",
                      f"{r['bytes'][topic] / dt_rx / 1e6:.1f}"])
     return rows
 
@@ -288,10 +303,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--role", default="bench", choices=["bench", "sub", "rec"])
     ap.add_argument("--endpoint", default="")
+    ap.add_argument("--keys", default="", help="(child) fleet folder for the secure run")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     if args.role == "sub":
-        run_subscriber(args.endpoint)
+        run_subscriber(args.endpoint, args.keys)
         return
     if args.role == "rec":
         rec = Recorder(args.endpoint, node_id="drone_1")
@@ -304,16 +320,23 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)  # the expected "not finalised" warnings of the kill runs
     print(f"machine: {machine()}")
     print(f"load average at start: {os.getloadavg()}")
-    b = Bench()
-    try:
-        lat = bench_latency(b, 3.0 if quick else 10.0)
-        thr = bench_throughput(b, 5_000 if quick else 20_000, 500 if quick else 2_000)
-    finally:
-        b.close()
-    print(table("publish -> receive latency, two processes, Zenoh peer over tcp/127.0.0.1 (ms, includes encode+decode)",
-                ["stream", "received", "p50", "p95", "p99", "max"], lat))
+    from comms.security import FleetKeys
+
+    lat, thr = [], []
+    with tempfile.TemporaryDirectory() as d:
+        fleet_keys = FleetKeys.create(Path(d) / "fleet", FLEET, drones=["drone_1"])
+        for label, keys_dir in (("tcp (plaintext)", ""), ("tls (mTLS + ACL)", str(fleet_keys.folder))):
+            b = Bench(keys_dir)
+            try:
+                lat += bench_latency(b, 3.0 if quick else 10.0, label)
+                thr += bench_throughput(b, 5_000 if quick else 20_000, 500 if quick else 2_000, label)
+            finally:
+                b.close()
+    print(table("publish -> receive latency, two processes, Zenoh peers on 127.0.0.1 (ms, includes encode+decode); "
+                "CPU % of one core during the run, publisher / subscriber process",
+                ["transport", "stream", "received", "p50", "p95", "p99", "max", "CPU % pub / sub"], lat))
     print(table("throughput, publisher as fast as it can (congestion control DROP for these topics)",
-                ["topic", "sent", "publish msg/s", "received", "end-to-end msg/s", "end-to-end MB/s"], thr))
+                ["transport", "topic", "sent", "publish msg/s", "received", "end-to-end msg/s", "end-to-end MB/s"], thr))
     rec = bench_recorder(5.0 if quick else 15.0)
     print(table("flight recorder, per-drone load: 50 Hz state + 10 Hz 20-60 KB JPEG + 10 Hz detections + 1 Hz health/info",
                 ["compression", "msg/s", "in MB/s", "file MB/s", "CPU % of one core", "dropped", "fsyncs"], rec))

@@ -57,10 +57,12 @@ from shared_msgs.codec import MessageError, decode, encode, stamp_sent, validate
 from shared_msgs.messages import Message, now_ns
 from comms.errors import TransportError
 from comms.faults import FaultConfig, FaultInjector
+from comms.security import FleetKeys, SecurityConfig, acl_config, tls_config
 
 __all__ = [
     "DEFAULT_RENDEZVOUS",
     "TransportConfig",
+    "SecurityConfig",
     "FaultConfig",
     "TransportError",
     "Transport",
@@ -96,7 +98,10 @@ class TransportConfig:
     endpoints only). ``gossip_scouting``: peers tell each other about peers they know (needed for the
     full mesh behind one rendezvous). ``zenoh_json5``: extra raw Zenoh settings, key -> JSON5 value
     (e.g. ``{"transport/unicast/max_links" = "2"}``), applied last. ``fault``: simulated receive-side
-    drops and delays for fault tests (:class:`FaultConfig`; off by default).
+    drops and delays for fault tests (:class:`FaultConfig`; off by default). ``security``: mutual TLS and
+    access control from a fleet folder (:class:`comms.security.SecurityConfig`); with it every endpoint must
+    be ``tls/...`` (``quic/...`` also works); without it the session is plaintext and open to anyone on the
+    network, which is logged as a warning.
     """
 
     mode: Literal["peer", "client"] = "peer"
@@ -106,20 +111,31 @@ class TransportConfig:
     gossip_scouting: bool = True
     zenoh_json5: dict[str, str] = field(default_factory=dict)
     fault: FaultConfig = field(default_factory=FaultConfig)
+    security: SecurityConfig = field(default_factory=SecurityConfig)
 
     @classmethod
-    def rendezvous(cls, endpoint: str = DEFAULT_RENDEZVOUS) -> TransportConfig:
+    def rendezvous(cls, endpoint: str = DEFAULT_RENDEZVOUS, keys_dir: str = "") -> TransportConfig:
         """The peer the others connect to: listens on ``endpoint``, connects to nobody."""
-        return cls(listen=[endpoint], connect=[])
+        return cls(listen=[endpoint], connect=[], security=SecurityConfig(keys_dir=str(keys_dir or "")))
 
     @classmethod
-    def local_peer(cls, rendezvous: str = DEFAULT_RENDEZVOUS) -> TransportConfig:
-        """A peer on an ephemeral loopback port that joins the rendezvous at ``rendezvous``."""
-        return cls(listen=["tcp/127.0.0.1:0"], connect=[rendezvous])
+    def local_peer(cls, rendezvous: str = DEFAULT_RENDEZVOUS, keys_dir: str = "") -> TransportConfig:
+        """A peer on an ephemeral loopback port (same protocol as ``rendezvous``, e.g. ``tls``) that joins it;
+        ``keys_dir``: the fleet folder for mutual TLS and access control (empty: insecure)."""
+        proto = str(rendezvous).partition("/")[0] or "tcp"
+        return cls(listen=[f"{proto}/127.0.0.1:0"], connect=[rendezvous],
+                   security=SecurityConfig(keys_dir=str(keys_dir or "")))
 
     def validate(self) -> None:
         """Raise :class:`TransportError` naming the bad field."""
         self.fault.validate()
+        if self.security.enabled:
+            for name in ("listen", "connect"):
+                for ep in getattr(self, name):
+                    if str(ep).partition("/")[0] not in ("tls", "quic"):
+                        raise TransportError(
+                            f"transport.{name} endpoint {ep!r} is plaintext while transport.security.keys_dir is set; "
+                            f"write it as tls/{str(ep).partition('/')[2]} (every link is mutual TLS)")
         if self.mode not in ("peer", "client"):
             raise TransportError(f"transport.mode {self.mode!r} must be 'peer' or 'client'")
         for name in ("listen", "connect"):
@@ -137,10 +153,18 @@ class TransportConfig:
                 "meet anyone; set transport.connect (e.g. ['tcp/127.0.0.1:7447']) or transport.listen"
             )
 
-    def to_zenoh(self) -> zenoh.Config:
-        """The equivalent :class:`zenoh.Config`."""
+    def to_zenoh(self, identity: str = "") -> zenoh.Config:
+        """The equivalent :class:`zenoh.Config`; with security, TLS and ACL for ``security.identity`` (default:
+        ``identity``). Raises :class:`comms.security.SecurityError` for an unusable certificate."""
         self.validate()
         cfg = zenoh.Config()
+        if self.security.enabled:
+            fleet_keys = FleetKeys.load(self.security.keys_dir)
+            identity = self.security.identity or identity
+            fleet_keys.check(identity)
+            cfg.insert_json5("transport/link/tls", json.dumps(tls_config(fleet_keys, identity,
+                                                                         self.security.verify_name)))
+            cfg.insert_json5("access_control", json.dumps(acl_config(fleet_keys)))
         cfg.insert_json5("mode", json.dumps(self.mode))
         cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
@@ -152,6 +176,19 @@ class TransportConfig:
             except Exception as e:  # zenoh.ZError
                 raise TransportError(f"transport.zenoh_json5[{k!r}] = {v!r} is refused by Zenoh: {e}") from None
         return cfg
+
+
+def local_peer_overrides(connect: str | None, keys_dir: str | None) -> dict[str, Any]:
+    """Config overrides (``transport.*``) of a command's ``--zenoh-connect`` / ``--zenoh-keys``: join that
+    rendezvous as a local peer (listen on an ephemeral loopback port in its protocol), with that fleet folder.
+    Unset options leave the config file's values alone."""
+    out: dict[str, Any] = {}
+    if connect:
+        out["transport.connect"] = [connect]
+        out["transport.listen"] = [f"{connect.partition('/')[0]}/127.0.0.1:0"]
+    if keys_dir:
+        out["transport.security.keys_dir"] = str(keys_dir)
+    return out
 
 
 @dataclass(slots=True)
@@ -180,6 +217,7 @@ class TopicStats:
 
     received: int = 0  #: decoded and handed to the callback
     malformed: int = 0  #: refused by the codec (malformed, unknown type, wrong version, wrong type, NaN)
+    forged: int = 0  #: refused: ``header.sender_id`` is not the node whose key the message came on
     callback_errors: int = 0  #: the user callback raised
     dropped: int = 0  #: async queue full: oldest message dropped
     fault_judged: int = 0  #: other drones' messages the simulated fault layer applied to (:class:`FaultConfig`)
@@ -336,10 +374,11 @@ class Transport:
     an ``atexit`` hook). All methods are thread-safe.
     """
 
-    def __init__(self, session: zenoh.Session, config: TransportConfig, node_id: str) -> None:
+    def __init__(self, session: zenoh.Session, config: TransportConfig, node_id: str, identity: str = "") -> None:
         self._session = session
         self.config = config
         self.node_id = node_id
+        self._identity = (config.security.identity or identity or node_id) if config.security.enabled else ""
         self._lock = threading.Lock()
         self._publishers: dict[str, Any] = {}
         self._seq: dict[str, int] = {}
@@ -359,14 +398,16 @@ class Transport:
 
     # ----------------------------------------------------------------------------------------- life
     @classmethod
-    def open(cls, config: TransportConfig | None = None, node_id: str = "node") -> Transport:
+    def open(cls, config: TransportConfig | None = None, node_id: str = "node", identity: str = "") -> Transport:
         """Open a Zenoh session from ``config`` (defaults: local peer joining the rendezvous).
 
-        ``node_id`` is only used in logs and errors (messages carry their own ``header.sender_id``).
-        Raises :class:`TransportError` (e.g. a listen port already in use).
+        ``node_id`` is used in logs and errors (messages carry their own ``header.sender_id``). ``identity``:
+        the certificate a secure session presents when ``config.security.identity`` is empty (default:
+        ``node_id``; e.g. a drone's camera service presents its drone's). Raises :class:`TransportError` (e.g. a
+        listen port already in use) or :class:`comms.security.SecurityError` (an unusable certificate).
         """
         config = config or TransportConfig()
-        zcfg = config.to_zenoh()
+        zcfg = config.to_zenoh(config.security.identity or identity or node_id)
         try:
             session = zenoh.open(zcfg)
         except Exception as e:  # zenoh.ZError
@@ -375,11 +416,28 @@ class Transport:
                 f"connect={config.connect}): {e}. If a listen port is in use, another process already listens "
                 f"there (a second rendezvous?): pick another port or join it via transport.connect"
             ) from None
-        t = cls(session, config, node_id)
+        t = cls(session, config, node_id, identity)
         _OPEN_TRANSPORTS.add(t)
         log.info("%s: zenoh %s session %s open (listen=%s, connect=%s, multicast=%s)", node_id, config.mode,
                  session.zid(), config.listen, config.connect, config.multicast_scouting)
+        if config.security.enabled:
+            log.info("%s: secure transport: mutual TLS as %r (fleet CA %s), Zenoh access control on", node_id,
+                     t.identity, config.security.keys_dir)
+        else:
+            log.warning("%s: INSECURE transport: plaintext, no authentication, no access control -- anyone on the "
+                        "network can read everything and command the fleet (set transport.security.keys_dir; "
+                        "see `skycap keys`)", node_id)
         return t
+
+    @property
+    def secure(self) -> bool:
+        """Whether this session runs mutual TLS with the fleet's access control."""
+        return self.config.security.enabled
+
+    @property
+    def identity(self) -> str:
+        """The certificate identity this session presents (its node id unless configured), '' when insecure."""
+        return self._identity
 
     def close(self) -> None:
         """Undeclare everything and close the session (idempotent). Liveliness tokens vanish: others see a leave."""
@@ -530,6 +588,14 @@ class Transport:
                 stats.last_error = f"{type(e).__name__}: {e}"
                 if self._logrl.should_log(stats.malformed):
                     log.warning("%s: dropped input #%d: %s", where, stats.malformed, stats.last_error)
+                return
+            node = _key_node(key)
+            if node is not None and msg.header.sender_id != node:
+                stats.forged += 1
+                stats.last_error = (f"sender_id {msg.header.sender_id!r} on {key} (a key of node {node!r}): "
+                                    f"a claimed sender must be the node whose keys it publishes under")
+                if self._logrl.should_log(stats.forged):
+                    log.warning("%s: refused forged message #%d: %s", where, stats.forged, stats.last_error)
                 return
             fault = self._fault
             if fault is not None and fault.applies(key):
@@ -716,6 +782,14 @@ class Transport:
             out = {k: dataclasses.asdict(v) for k, v in self._stats.items()}
             out["published"] = dict(self._seq)
         return out
+
+
+def _key_node(key: str) -> str | None:
+    """The node segment of a skycap key (whose certificate alone may publish there), None for other keys."""
+    try:
+        return _keys.parse_key(key)[1]
+    except ValueError:
+        return None
 
 
 def _quiet(fn: Callable[[], Any]) -> None:

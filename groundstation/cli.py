@@ -16,6 +16,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("fleet", help="fleet client: send a plan or commands, watch the fleet (over Zenoh)")
     p.add_argument("--fleet", default="default", help="fleet id (default: default)")
     p.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447", help="Zenoh endpoint to join")
+    p.add_argument("--zenoh-keys", default=None, help="fleet folder from `skycap keys` (this ground station presents "
+                   "its 'gcs' certificate; endpoints tls/...)")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
 
     pl = verbs.add_parser("plan", help="send an orbit plan (drones evenly spaced on one circle)")
@@ -49,7 +51,8 @@ def _client(args, heartbeat_hz: float = 2.0):
     from groundstation.fleet import FleetClient
     from comms.transport import TransportConfig
 
-    client = FleetClient.open(args.fleet, TransportConfig.local_peer(args.zenoh_connect), heartbeat_hz=heartbeat_hz)
+    client = FleetClient.open(args.fleet, TransportConfig.local_peer(args.zenoh_connect, args.zenoh_keys or ""),
+                              heartbeat_hz=heartbeat_hz)
     time.sleep(1.0)  # let Zenoh connect and the presence of the drones arrive
     return client
 

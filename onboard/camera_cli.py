@@ -49,6 +49,7 @@ def _add_probe(cam_sub: argparse._SubParsersAction) -> None:
                    help="latency subtracted from arrival times for sources without capture timestamps")
     p.add_argument("--fleet", default="default", help="fleet of a sim:<drone_id> source")
     p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join for a sim source")
+    p.add_argument("--zenoh-keys", default=None, help="fleet folder from `skycap keys` for a sim source")
     p.set_defaults(func=_run_probe)
 
 
@@ -76,7 +77,7 @@ def _run_probe(args: argparse.Namespace) -> int:
     if kind == "sim" and args.zenoh_connect:
         from comms.transport import TransportConfig
 
-        transport = TransportConfig(connect=[args.zenoh_connect])
+        transport = TransportConfig.local_peer(args.zenoh_connect, keys_dir=args.zenoh_keys or "")
     src = open_source(cfg, fleet=args.fleet, transport=transport, open_now=False)
     report = probe(src, args.seconds)
     if args.json:
@@ -96,11 +97,13 @@ def _add_serve(cam_sub: argparse._SubParsersAction) -> None:
     add_config_args(p)
     p.add_argument("--drone-id", default=None, help="this drone's id (drone_1, drone_2 ...)")
     p.add_argument("--fleet", default=None, help="fleet id")
-    p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join, e.g. tls/127.0.0.1:7447")
+    p.add_argument("--zenoh-keys", default=None, help="fleet folder from `skycap keys` (transport.security.keys_dir)")
     p.set_defaults(func=_run_serve)
 
 
 def _run_serve(args: argparse.Namespace) -> int:
+    from comms.transport import local_peer_overrides
     from onboard.camera.service import serve
     from onboard.config import AgentConfig
     from skycap.config import config_from_args
@@ -108,7 +111,7 @@ def _run_serve(args: argparse.Namespace) -> int:
     extra = {
         "drone_id": args.drone_id,
         "fleet": args.fleet,
-        "transport.connect": [args.zenoh_connect] if args.zenoh_connect else None,
+        **local_peer_overrides(args.zenoh_connect, args.zenoh_keys),
     }
     cfg = config_from_args(AgentConfig, args, extra)
     return serve(cfg)

@@ -21,7 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--connection", default=None, help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540")
     p.add_argument("--record-dir", default=None, help="flight folder; each agent start records a new sortie <dir>/<drone_id>.s<NNN>.mcap")
     p.add_argument("--no-record", action="store_true", help="do not record an MCAP file")
-    p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join, e.g. tls/127.0.0.1:7447")
+    p.add_argument("--zenoh-keys", default=None, help="fleet folder from `skycap keys` (transport.security.keys_dir)")
     p.add_argument("--print-config", action="store_true", help="print the resolved configuration (TOML) and exit")
     p.add_argument("--standby", action="store_true",
                    help="a warm spare: load everything, then wait for SIGUSR1 before starting (a supervisor wakes it "
@@ -33,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     import asyncio
 
+    from comms.transport import local_peer_overrides
     from onboard.agent import run_agent
     from onboard.config import AgentConfig
     from skycap.config import config_from_args
@@ -43,7 +45,7 @@ def _run(args: argparse.Namespace) -> int:
         "connection": args.connection,
         "record.dir": args.record_dir,
         "record.enabled": False if args.no_record else None,
-        "transport.connect": [args.zenoh_connect] if args.zenoh_connect else None,
+        **local_peer_overrides(args.zenoh_connect, args.zenoh_keys),
     }
     cfg = config_from_args(AgentConfig, args, extra).validate()
     if args.print_config:

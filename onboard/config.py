@@ -42,6 +42,11 @@ class SafetyConfig:
     #: on SIGTERM while airborne: "land" (and wait for touchdown up to ``sigterm_land_timeout_s``) or "hold"
     sigterm_action: str = "land"
     sigterm_land_timeout_s: float = 20.0
+    #: the agent (re)started and found the vehicle already in the air (systemd restarted it after a crash or a
+    #: watchdog timeout; the autopilot's offboard-loss failsafe holds the vehicle meanwhile): "land" it, or
+    #: "resume" (take it over hovering: the airborne failsafes run again, the ground station's start resumes the
+    #: orbit)
+    on_restart_airborne: str = "land"
     #: another drone closer than the plan's min_separation_m while airborne: "hold", "land" or "warn"
     separation_action: str = "hold"
     #: when the autopilot leaves offboard after a stall of the setpoint stream (its offboard-loss Hold / Return;
@@ -293,6 +298,8 @@ class AgentConfig:
             raise ConfigError(f"safety.separation_action={self.safety.separation_action!r}; use 'hold', 'land' or 'warn'")
         if self.safety.sigterm_action not in ("land", "hold"):
             raise ConfigError(f"safety.sigterm_action={self.safety.sigterm_action!r}; use 'land' or 'hold'")
+        if self.safety.on_restart_airborne not in ("land", "resume"):
+            raise ConfigError(f"safety.on_restart_airborne={self.safety.on_restart_airborne!r}; use 'land' or 'resume'")
         if self.rates.setpoint_hz < 2:
             raise ConfigError(f"rates.setpoint_hz={self.rates.setpoint_hz}: PX4 offboard needs >= 2 Hz; use 10-50")
         f = self.track.failsafe

@@ -11,7 +11,6 @@ States::
     hover/paused --start (with a plan)--> orbit --pause--> paused
     any airborne --land / failsafe--> landing --(on ground)--> landed (--arm--> armed ...)
     any airborne --return--> returning --(on ground)--> landed
-    idle --(the vehicle reports armed and in the air: an agent restarted mid-flight)--> paused
 """
 
 from __future__ import annotations
@@ -212,10 +211,6 @@ class Mission:
     def vehicle(self, armed: bool, in_air: bool, at_altitude: bool) -> Transition:
         """Follow the vehicle: takeoff done, touchdown, disarm by the autopilot."""
         s = self.state
-        if s == State.IDLE and armed and in_air:
-            # the agent (re)started with its vehicle already flying (a crashed agent restarted mid-flight): it
-            # takes the vehicle over paused -- the autopilot holds it -- until the operator's start or land
-            return self._go(State.PAUSED, Action.NONE)
         if s == State.TAKEOFF and in_air and at_altitude:
             return self._go(State.HOVER, Action.NONE)
         if s in (State.LANDING, State.RETURNING) and not in_air:

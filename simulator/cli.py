@@ -71,6 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     net = p.add_argument_group("ground truth on the fleet network")
     net.add_argument("--fleet", default=None, help="publish the ground truth on this fleet's sim/truth key (Zenoh)")
     net.add_argument("--zenoh-connect", default="tcp/127.0.0.1:7447", help="Zenoh endpoint to join")
+    net.add_argument("--zenoh-keys", default=None, help="fleet folder from `skycap keys` (the simulator presents "
+                     "the 'sim' certificate; endpoints tls/...)")
     net.add_argument("--truth-hz", type=float, default=50.0, help="ground-truth publishing rate")
     net.add_argument("--gimbal-pitch-deg", type=float, default=None,
                      help="the pitch each vehicle's gimbal starts at (gimbal.initial_pitch_deg; without a gimbal: the "
@@ -104,7 +106,8 @@ def _run(args: argparse.Namespace) -> int:
                           "outside: leave it out with --autopilot px4 (or use --autopilot builtin)")
     net = None
     if args.fleet:
-        net = SimNetwork(fleet=args.fleet, zenoh_connect=args.zenoh_connect, truth_hz=args.truth_hz,
+        net = SimNetwork(fleet=args.fleet, zenoh_connect=args.zenoh_connect, zenoh_keys=args.zenoh_keys or "",
+                         truth_hz=args.truth_hz,
                          gimbal_pitch_rad=math.radians(args.gimbal_pitch_deg or 0.0),
                          gps_jump=args.gps_jump, param_at=list(args.param_at), link_loss=list(args.link_loss))
     elif args.gps_jump or args.param_at or args.link_loss:
@@ -121,6 +124,7 @@ class SimNetwork:
 
     fleet: str
     zenoh_connect: str = "tcp/127.0.0.1:7447"
+    zenoh_keys: str = ""  #: fleet folder (mutual TLS + ACL as the 'sim' identity); '' = insecure
     truth_hz: float = 50.0
     gimbal_pitch_rad: float = 0.0
     gps_jump: str | None = None
@@ -145,7 +149,7 @@ def run_sim(cfg: SimConfig, out: Path | None = None, duration_s: float | None = 
     if net is not None:
         faults = SimFaults.parse(net.gps_jump, net.param_at, len(world.vehicles),
                                  lambda name: world.vehicles[0].params.get(name) is not None, net.link_loss)
-        bus = Transport.open(TransportConfig.local_peer(net.zenoh_connect), "sim")
+        bus = Transport.open(TransportConfig.local_peer(net.zenoh_connect, net.zenoh_keys), "sim")
         bus.declare_alive(keys.alive_key(net.fleet, keys.SIM))
         TruthPublisher(world, bus, net.fleet, rate_hz=net.truth_hz, gimbal_pitch_rad=net.gimbal_pitch_rad)
         schedule_faults(world, bus, net.fleet, faults)
@@ -237,7 +241,7 @@ def run_px4(cfg: SimConfig, px4_dir: str | None = None, first_instance: int = 0,
             ground = read_px4_param(sitl, 0, "SIH_LOC_H0")
             log.info("SIH ground (SIH_LOC_H0): %s m AMSL; world origin %.6f, %.6f, %.1f m AMSL", ground, o.lat_deg,
                      o.lon_deg, o.alt_m)
-            bus = Transport.open(TransportConfig.local_peer(net.zenoh_connect), "sim")
+            bus = Transport.open(TransportConfig.local_peer(net.zenoh_connect, net.zenoh_keys), "sim")
             bus.declare_alive(keys.alive_key(net.fleet, keys.SIM))
             publisher = SihTruthPublisher(bus, net.fleet, [sitl.truth_port(k) for k in range(n)],
                                           (o.lat_deg, o.lon_deg, o.alt_m), rate_hz=net.truth_hz,

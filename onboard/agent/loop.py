@@ -32,7 +32,8 @@ The :class:`Agent` is the wiring; each part has one job and is testable alone:
   logged, counted, kept in the health warnings and written to ``<drone>.track.json`` (``failsafe_events``,
   ``failsafe_counts``) with the malformed-detection and network-fault counters.
 
-Loops (asyncio, one thread + MAVSDK's and Zenoh's own): the control loop (``rates.setpoint_hz``), the
+Loops (asyncio, one thread + MAVSDK's and Zenoh's own): the control loop (``rates.setpoint_hz``; under systemd it
+also sends READY once the autopilot link is up and pings the watchdog: :meth:`Agent._systemd_tick`), the
 supervisor (10 Hz: vehicle events, failsafes, health heartbeat) and the telemetry callbacks (50 Hz:
 record state, publish it at ``rates.state_publish_hz``).
 
@@ -86,6 +87,7 @@ from shared_msgs import (
     stamp_sent,
 )
 from skycap.frames import yaw_from_quat_wxyz
+from skycap.sdnotify import Notifier
 
 if TYPE_CHECKING:  # annotations only: the track-mode parts are imported when track mode is configured
     from onboard.agent.failsafes import FormationFailsafes
@@ -101,8 +103,12 @@ class Agent:
     """One drone's agent. ``await agent.run(stop)`` until ``stop`` is set (SIGTERM), then shut down cleanly."""
 
     def __init__(self, cfg: AgentConfig, bus: Any, autopilot: Any, recorder: Any = None,
-                 perception: list[PerceptionStage] | None = None):
+                 perception: list[PerceptionStage] | None = None, notifier: Notifier | None = None):
         self.cfg = cfg.validate()
+        #: systemd's notify protocol (the process entry passes one from the environment; a no-op otherwise)
+        self.notifier = notifier if notifier is not None else Notifier.disabled()
+        self._t_first_state_s: float | None = None  #: monotonic time of the first vehicle state
+        self.link_up = False  #: the autopilot link is up: first telemetry with the landed state, restart policy applied
         self.id = cfg.drone_id
         self.bus = bus
         self.autopilot = autopilot
@@ -213,11 +219,22 @@ class Agent:
             return
         self.formation.on_teammate_plan(keys.parse_key(rx.key)[1], rx.msg, self.source)
 
+    def _sender(self, rx) -> str:
+        """Who sent ``rx``, for the log: the sender id, authenticated by its certificate when the transport is
+        secure (the ACL lets only that certificate publish under its keys; the transport refused any other
+        claimed sender id)."""
+        who = rx.msg.header.sender_id
+        if self.bus.secure:
+            return f"{who!r} (authenticated: certificate CN {who!r}, mutual TLS + fleet ACL)"
+        return f"{who!r} (NOT authenticated: insecure transport)"
+
     def on_command(self, rx) -> None:
         self.outbox.record(rx.key, rx.data, rx.t_received_ns)
         cmd: Command = rx.msg
         if cmd.target not in ("*", self.id):
             return  # another drone's command: its agent answers
+        log.info("%s: command %s %s for %s from %s", self.id, cmd.action, cmd.command_id, cmd.target,
+                 self._sender(rx))
         reason = validate_command(cmd, self.id, rx.t_received_ns)
         if reason is not None:
             self.ack(cmd.command_id, "refused", reason)
@@ -235,6 +252,7 @@ class Agent:
         if self.mission.plan is not None and plan.plan_id == self.mission.plan.plan_id and \
                 plan.header.t_sent_ns == self.mission.plan.header.t_sent_ns:
             return  # the same plan again (live + query)
+        log.info("%s: orbit plan %s from %s", self.id, plan.plan_id, self._sender(rx))
         reason = validate_plan(plan, self.id, self.cfg.safety, rx.t_received_ns)
         if reason is not None:
             self.ack(plan.plan_id, "refused", reason)
@@ -369,6 +387,7 @@ class Agent:
         t_next = time.monotonic()
         while True:
             t_next += period
+            self._systemd_tick()
             src, st = self.source, self.state
             if src is not None and st is not None:
                 try:
@@ -385,6 +404,46 @@ class Agent:
             if delay < -period:
                 t_next = time.monotonic()  # fell behind: do not burst
             await asyncio.sleep(max(0.0, delay))
+
+    def _systemd_tick(self) -> None:
+        """Each control tick: READY once the autopilot link is up (:meth:`_check_link_up`; the recorder opened
+        before the agent was made), the mission state as the service status, and the watchdog ping: sent from the
+        control loop itself, so that a stuck loop (an await that never returns, a blocked event loop) stops the
+        pings and systemd restarts the agent (``WatchdogSec=``, deploy/INSTALL.md)."""
+        n = self.notifier
+        if not self.link_up and self._check_link_up():
+            self.link_up = True
+            n.ready(f"{self.id}: ready, {self.mission.state.value}")
+        elif self.link_up:
+            n.status(f"{self.id}: {self.mission.state.value}" + (f" (failsafe: {self.mission.failsafe})"
+                                                                 if self.mission.failsafe else ""))
+        n.watchdog()
+
+    def _check_link_up(self) -> bool:
+        """The autopilot link is up: a vehicle state arrived and the autopilot reported its landed state (or 3 s
+        passed without one). A vehicle already in the air then (the agent restarted in flight) is taken over by
+        ``safety.on_restart_airborne``: "resume" (hover under the agent: the airborne failsafes run again and the
+        ground station's start resumes the orbit) or "land"."""
+        if self.state is None:
+            self.notifier.status(f"{self.id}: autopilot connected, waiting for the first telemetry")
+            return False
+        now = time.monotonic()
+        if self._t_first_state_s is None:
+            self._t_first_state_s = now
+        T = self.autopilot.telemetry
+        if T.landed_state == "unknown" and now - self._t_first_state_s < 3.0:
+            self.notifier.status(f"{self.id}: waiting for the autopilot's landed state")
+            return False
+        if self.mission.state == State.IDLE and (T.in_air or T.landed_state in ("in_air", "taking_off", "landing")):
+            policy = self.cfg.safety.on_restart_airborne
+            reason = (f"started with the vehicle airborne ({T.landed_state}, {T.altitude_m:.1f} m, "
+                      f"{T.flight_mode}): safety.on_restart_airborne = {policy}")
+            log.warning("%s: %s", self.id, reason)
+            self.warnings.append(reason)
+            self.mission.state = State.HOVER  # adopted: the vehicle is flying and now the agent's again
+            if policy == "land":
+                self._failsafe("agent restarted with the vehicle airborne", "land")
+        return True
 
     async def _point_gimbal(self, sp: Setpoint) -> None:
         """Send the setpoint's camera pitch to the gimbal at <= 2 Hz when it moved by > 0.5 deg, in the
@@ -531,9 +590,11 @@ class Agent:
             self.bus.declare_alive(keys.alive_key(cfg.fleet, self.id))
         except Exception as e:
             log.warning("%s: no liveliness token: %s", self.id, e)
+        self.notifier.status(f"{self.id}: connecting to the autopilot on {cfg.connection}")
         await self.autopilot.connect(cfg.connection, cfg.connect_timeout_s)
         await self.autopilot.start_telemetry(cfg.rates.telemetry_hz)
         self.autopilot.mode_confirm_timeout_s = cfg.autopilot.mode_confirm_timeout_s
+        self.notifier.status(f"{self.id}: autopilot connected, checking its parameters")
         await self.autopilot.apply_params(cfg.autopilot.params(cfg.flight.takeoff_altitude_m), write=cfg.autopilot.set_params)
         self._tasks.append(asyncio.create_task(self.control_loop(), name="control"))
         self._tasks.append(asyncio.create_task(self.supervisor_loop(), name="supervisor"))
@@ -585,4 +646,6 @@ class Agent:
     async def run(self, stop: asyncio.Event) -> None:
         await self.start()
         await stop.wait()
+        self.notifier.stopping(f"{self.id}: stopping" + (f", {self.cfg.safety.sigterm_action} first"
+                                                         if self.mission.airborne else ""))
         await self.shutdown()

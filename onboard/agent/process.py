@@ -15,6 +15,7 @@ from onboard.agent.autopilot import MavsdkAutopilot
 from onboard.agent.loop import Agent
 from onboard.config import AgentConfig
 from skycap.config import save_config
+from skycap.sdnotify import Notifier
 
 log = logging.getLogger(__name__)
 
@@ -22,8 +23,11 @@ __all__ = ["run_agent"]
 
 
 async def run_agent(cfg: AgentConfig) -> int:
-    """Process entry: open the transport and the recorder, run the agent until SIGTERM/SIGINT."""
+    """Process entry: open the transport and the recorder, run the agent until SIGTERM/SIGINT. Under systemd
+    (``Type=notify``, deploy/skycap-agent.service) it reports its progress, is ready once the autopilot link and
+    the recorder are up, and pings the watchdog from the control loop (:class:`skycap.sdnotify.Notifier`)."""
     cfg.validate()
+    notifier = Notifier.from_env()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -38,7 +42,9 @@ async def run_agent(cfg: AgentConfig) -> int:
         return rec
 
     if cfg.record.enabled:
+        notifier.status(f"{cfg.drone_id}: opening the recording in {cfg.record.dir}")
         recorder = open_recorder()
+    notifier.status(f"{cfg.drone_id}: joining the fleet network")
     bus = Transport.open(cfg.transport, node_id=cfg.drone_id)
     camera = None
     if cfg.camera.source != "sim" and cfg.camera.in_agent:
@@ -49,7 +55,7 @@ async def run_agent(cfg: AgentConfig) -> int:
         camera = CameraService(cfg.camera, bus, cfg.fleet, cfg.drone_id)
         camera.start()
     origin = (cfg.origin.lat_deg, cfg.origin.lon_deg, cfg.origin.alt_m)
-    agent = Agent(cfg, bus, MavsdkAutopilot(cfg.drone_id, origin=origin), recorder)
+    agent = Agent(cfg, bus, MavsdkAutopilot(cfg.drone_id, origin=origin), recorder, notifier=notifier)
     if cfg.record.enabled:
         # a failed recorder (writer died, disk full) is reported in the health and replaced by a new recording
         agent.outbox.reopen_recorder = open_recorder

@@ -46,6 +46,7 @@ from shared_msgs.messages import CameraFrame, CameraInfo, CameraStatus
 from skycap.camera import CameraError, PinholeCamera
 from skycap.config import ConfigError
 from skycap.frames import R_body_cam, make_T
+from skycap.sdnotify import Notifier
 
 log = logging.getLogger(__name__)
 
@@ -96,11 +97,12 @@ class CameraService:
 
     ``bus``: an open :class:`comms.transport.Transport` (anything with ``publish(key, msg, latch=...)``).
     ``source``: a :class:`FrameSource` to use instead of the one ``cfg`` describes (tests); it is opened and
-    re-opened by the service.
+    re-opened by the service. ``notifier``: systemd's watchdog, pinged from the capture loop (``skycap camera
+    serve`` under deploy/skycap-camera.service; none inside the agent, whose control loop pings it).
     """
 
     def __init__(self, cfg: CameraConfig, bus: Any, fleet: str, drone_id: str, *, source: FrameSource | None = None,
-                 loop_file: bool = False) -> None:
+                 loop_file: bool = False, notifier: Notifier | None = None) -> None:
         if cfg.source == "sim" and source is None:
             raise ConfigError("camera.source='sim': the simulator's camera node publishes this drone's frames; "
                               "the camera service captures a real source (v4l2, gstreamer, rtsp or file)")
@@ -111,6 +113,7 @@ class CameraService:
         self.source = source if source is not None else open_source(cfg, fleet=fleet, loop_file=loop_file,
                                                                     open_now=False)
         self.counters = ServiceCounters()
+        self.notifier = notifier if notifier is not None else Notifier.disabled()
         self.calibration: PinholeCamera | None = None
         self.info_camera: PinholeCamera | None = None  #: what CameraInfo says now (None: not published)
         self.connected = False
@@ -172,6 +175,7 @@ class CameraService:
         t_ref = time.monotonic()  # last frame or open
         try:
             while not self._stop.is_set():
+                self.notifier.watchdog()  # a capture loop stuck in the source stops it: systemd restarts the service
                 now = time.monotonic()
                 if not is_open:
                     if now >= t_next_open:
@@ -370,26 +374,34 @@ def serve(agent_cfg: Any, *, stop: threading.Event | None = None,
     from comms.transport import Transport
 
     cam_cfg: CameraConfig = agent_cfg.camera.validate()
+    notifier = Notifier.from_env()
+    notifier.status(f"camera {cam_cfg.camera_id} of {agent_cfg.drone_id}: starting")
     stop = stop or threading.Event()
     restore: list[tuple[int, Any]] = []
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             restore.append((sig, signal.signal(sig, lambda signum, _frame: stop.set())))
     try:
-        with Transport.open(agent_cfg.transport, node_id=f"{agent_cfg.drone_id}-camera") as bus:
+        with Transport.open(agent_cfg.transport, node_id=f"{agent_cfg.drone_id}-camera", identity=agent_cfg.drone_id) as bus:
             # a file served as a camera (bench tests) replays in a loop rather than re-opening after each end
             svc = CameraService(cam_cfg, bus, agent_cfg.fleet, agent_cfg.drone_id,
-                                loop_file=cam_cfg.source == "file").start()
+                                loop_file=cam_cfg.source == "file", notifier=notifier).start()
             log.info("camera %s of %s: serving %s on %s", cam_cfg.camera_id, agent_cfg.drone_id,
                      svc.source.describe(), keys.drone_key(agent_cfg.fleet, agent_cfg.drone_id, "camera/*"))
             if on_started is not None:
                 on_started(svc)
+            # ready once publishing (the calibration loaded, the capture running): a camera that is absent or lost
+            # is reported in camera/status and re-opened, not waited for here
+            notifier.ready(f"camera {cam_cfg.camera_id}: {svc.source.describe()}: {svc.detail}")
             try:
                 while not stop.wait(0.5):
                     if not svc.running:
                         log.error("camera service thread ended")
                         return 1
+                    notifier.status(f"camera {cam_cfg.camera_id}: {svc.source.describe()}: "
+                                    + ("delivering" if svc.connected else svc.detail))
             finally:
+                notifier.stopping(f"camera {cam_cfg.camera_id}: stopping")
                 svc.stop()
                 c = svc.counters
                 log.info("camera %s: stopped after %d frames (%d dropped by the source, %d bad, %d reconnects)",

@@ -504,7 +504,8 @@ class SimSource(FrameSource):
 
         self.close()
         if self._bus is None or self._own_bus:
-            self._bus = Transport.open(self._transport_cfg, node_id=f"camera-probe-{self.drone_id}")
+            self._bus = Transport.open(self._transport_cfg, node_id=f"camera-probe-{self.drone_id}",
+                                      identity=self.drone_id)
             self._own_bus = True
         key = keys.drone_key(self.fleet, self.drone_id, keys.CAMERA_IMAGE)
         self._sub = self._bus.subscribe(key, self._on_frame, CameraFrame)

@@ -106,6 +106,8 @@ def add_node_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fleet", required=True, help="fleet id (Zenoh key segment)")
     p.add_argument("--drone", "--drone-id", dest="drone", required=True, help="drone id, e.g. drone_1")
     p.add_argument("--zenoh-connect", default=None, help="Zenoh endpoint to join (default: the local rendezvous)")
+    p.add_argument("--zenoh-keys", default=None, help="fleet folder from `skycap keys`: the camera presents its "
+                   "drone's certificate (mutual TLS + access control)")
     add_config_args(p)
 
 
@@ -117,7 +119,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    bus = Transport.open(TransportConfig.local_peer(args.zenoh_connect or DEFAULT_RENDEZVOUS), f"{args.drone}_camera")
+    bus = Transport.open(TransportConfig.local_peer(args.zenoh_connect or DEFAULT_RENDEZVOUS, args.zenoh_keys or ""),
+                         f"{args.drone}_camera", identity=args.drone)
     try:
         run_camera_node(cfg, args.fleet, args.drone, bus, stop)
     finally:

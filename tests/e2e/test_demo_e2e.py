@@ -37,6 +37,12 @@ def test_short_demo_produces_a_sane_summary(tmp_path):
     assert s["fleet"]["min_separation_m"] > s["fleet"]["configured_min_separation_m"]
     assert 25.0 < s["fleet"]["flight_s"] < 90.0
     assert "setpt_hz" in r.stdout  # the printed table
+    # secure by default: mutual TLS + ACL, each command logged with its authenticated sender; no key left behind
+    assert s["security"]["insecure"] is False and s["security"]["identities"]["gcs"] == "gcs", s["security"]
+    agent_log = (out / "logs" / "drone_1.log").read_text()
+    assert "secure transport: mutual TLS as 'drone_1'" in agent_log
+    assert "command land" in agent_log and "authenticated: certificate CN 'gcs'" in agent_log
+    assert not list(out.rglob("*.key")), "private keys must never land in the flight folder"
 
     # a second demo into the same folder is refused before it starts anything, and changes no file
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}

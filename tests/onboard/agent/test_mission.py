@@ -136,17 +136,3 @@ def test_arm_waits_for_the_vehicle_before_following_a_disarm():
     m.vehicle(armed=True, in_air=False, at_altitude=False)
     assert m.vehicle(armed=False, in_air=False, at_altitude=False).state == State.IDLE  # auto-disarm
 
-
-def test_a_restarted_agent_takes_over_its_flying_vehicle_paused():
-    m = Mission()
-    assert m.vehicle(armed=False, in_air=False, at_altitude=False).state == State.IDLE
-    t = m.vehicle(armed=True, in_air=True, at_altitude=False)
-    assert t.state == State.PAUSED and t.action == Action.NONE and m.airborne
-    m.set_plan(plan())
-    assert m.command("start").action == Action.START_ORBIT  # the operator resumes the orbit
-    m2 = Mission()
-    m2.vehicle(armed=True, in_air=True, at_altitude=False)
-    assert m2.command("land").action == Action.LAND  # or lands it
-    # armed on the ground (a preflight arm by someone else) is not flying
-    m3 = Mission()
-    assert m3.vehicle(armed=True, in_air=False, at_altitude=False).state == State.IDLE
