@@ -17,19 +17,25 @@ pytestmark = pytest.mark.slow
 
 
 def test_drones_landed_by_another_client_the_demo_still_summarises_and_reconstructs(tmp_path):
+    from comms.security import FleetKeys
     from comms.transport import Transport, TransportConfig
     from groundstation.fleet import FleetClient
+    from shared_msgs import keys
 
     out = tmp_path / "flight"
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    # a fleet folder given to the demo: the other client joins the secure fleet with the ground station's certificate
+    fleet_keys = FleetKeys.create(tmp_path / "keys", "early", drones=["drone_1", "drone_2"], sim=True, days=2)
+    port = free_tcp_port()
     cmd = [sys.executable, "-m", "apps.cli", "demo", "--drones", "2", "--duration", "24", "--out", str(out),
-           "--set", f'zenoh_endpoint="{endpoint}"', "--set", f"mavlink_base={free_udp_base(2)}",
+           "--set", f'zenoh_endpoint="tcp/127.0.0.1:{port}"', "--set", f'keys_dir="{fleet_keys.folder}"',
+           "--set", f"mavlink_base={free_udp_base(2)}",
            "--set", 'fleet="early"', "--set", "camera_set=[\"camera.width_px=320\", \"camera.height_px=240\"]"]
     demo = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     bus = None
     try:
         time.sleep(3.0)  # the demo's rendezvous first
-        bus = Transport.open(TransportConfig.local_peer(endpoint), "other_client")
+        bus = Transport.open(TransportConfig.local_peer(f"tls/127.0.0.1:{port}", str(fleet_keys.folder)),
+                             "other_client", identity=keys.GCS)
         other = FleetClient("early", bus, heartbeat_hz=0)
         assert other.wait_until(lambda f: len(f.healths) == 2 and all(h.state == "orbit" for h in f.healths.values()),
                                 150, "orbit"), other.table()
