@@ -20,6 +20,7 @@ from skycap.logsetup import setup_logging
 #: Modules that contribute subcommands, in help order.
 COMMAND_MODULES = (
     "apps.demo",
+    "apps.faults",
     "simulator.cli",
     "simulator.scene.cli",
     "onboard.cli",
@@ -33,6 +34,26 @@ COMMAND_MODULES = (
     "apps.refine",
 )
 
+#: The subcommands each module registers. ``skycap <command> ...`` imports only that command's module (a
+#: drone's ``skycap agent``, restarted after a crash, does not import the simulator, the reconstruction and the
+#: evaluation first: ~2 s of a 3 s start on a loaded 2-core machine); ``skycap --help`` imports them all.
+#: tests/skycap/test_cli_commands.py checks this table against what the modules register.
+COMMANDS_OF_MODULE = {
+    "apps.demo": ("demo",),
+    "apps.faults": ("faults",),
+    "simulator.cli": ("sim",),
+    "simulator.scene.cli": ("sim-camera", "sim-preview"),
+    "onboard.cli": ("agent",),
+    "onboard.camera_cli": ("camera",),
+    "flightdata.flightlog": ("log",),
+    "onboard.detector.cli": ("detect",),
+    "groundstation.cli": ("fleet",),
+    "comms.cli": ("keys",),
+    "reconstruction.cli": ("eval", "reconstruct"),
+    "reconstruction.keypoints.cli": ("keypoints",),
+    "apps.refine": ("refine",),
+}
+
 log = logging.getLogger("skycap")
 
 #: Packages of the optional extras (pyproject.toml) -> the extra that installs them. A drone's base install
@@ -45,12 +66,21 @@ def missing_extra(e: ModuleNotFoundError) -> str | None:
     return EXTRA_OF_PACKAGE.get((e.name or "").split(".")[0])
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _command_module(argv: list[str]) -> str | None:
+    """The module of the command ``argv`` names (its first word that is not an option), if the table knows it."""
+    words = [a for a in argv if not a.startswith("-")]
+    if not words or "--log-level" in argv:  # --log-level takes a value: leave such a line to the full parser
+        return None
+    return next((m for m, cmds in COMMANDS_OF_MODULE.items() if words[0] in cmds and m in COMMAND_MODULES), None)
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command module's subcommands (``only``: of that module alone)."""
     parser = argparse.ArgumentParser(prog="skycap", description="skycap: markerless human motion capture from a fleet of autonomous camera drones.")
     parser.add_argument("--version", action="version", version=f"skycap {__version__}")
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING or ERROR (default INFO)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
+    for name in (COMMAND_MODULES if only is None else (only,)):
         try:
             mod = importlib.import_module(name)
         except ModuleNotFoundError as e:  # a part that is not built yet
@@ -64,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(only=_command_module(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     setup_logging(args.log_level)
     func = getattr(args, "func", None)

@@ -36,8 +36,17 @@ Fault injection (``faults.*``, :class:`FaultsDemoConfig`; simulation/chaos optio
 teammate messages dropped / teammates' detections delayed at every agent (the transport's receive-side
 fault layer, ``transport.fault``), one agent SIGKILLed mid-flight (its vehicle then lands on offboard loss;
 the others re-space), a GPS jump of one vehicle's estimate (in the simulator's estimator), malformed
-detections (NaN, inverted boxes, broken poses) published by this launcher on the drones' detection keys.
-What was injected goes into ``summary.json`` under ``faults``.
+detections (NaN, inverted boxes, broken poses) published by this launcher on the drones' detection keys, a flood
+of malformed states and commands (``malformed_flood_hz``), the killed agent restarted (``restart_agent_after_s``;
+from a warm ``--standby`` spare by default), the ground station's link lost (``gcs_link_lost_at_s``), one
+vehicle's MAVLink link lost for a while (``mavlink_loss_*``, the simulator's vehicle link), one recorder's disk
+full or its writer killed (``recorder_fault*``, signalled to that agent). What was injected goes into
+``summary.json`` under ``faults``; ``skycap faults run`` (:mod:`apps.faults`) flies the named scenarios.
+
+The demo finishes whatever state the drones end in: the final land goes only to the drones still flying; a
+drone already on the ground (landed by a failsafe, or by another client's command) or already landing is
+reported in ``summary.json`` (``drones.<id>.ended``), not an error; ``summary.json`` is always written (with
+``error`` when no orbit figures could be made) and the reconstruction runs on what was recorded.
 
 What it launches (each an OS process, as on the real system; logs in ``<out>/logs/``):
 
@@ -74,7 +83,7 @@ from pathlib import Path
 import msgspec
 
 from apps.supervisor import ProcessSupervisor
-from comms.faults import MalformedDetectionsInjector
+from comms.faults import MalformedDetectionsInjector, MalformedFloodInjector
 from comms.security import FleetKeys
 from comms.transport import Transport, TransportConfig
 from evaluation.flight import (format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
@@ -149,6 +158,33 @@ class FaultsDemoConfig:
     #: and a non-rigid camera pose on the first drone's own detector key, an inverted box and a NaN pose as the
     #: second drone's shared detections)
     malformed_detections_hz: float = 0.0
+    #: malformed messages per second on the keys every agent listens to, from the plan's start (NaN and garbage
+    #: teammate states and ground-station commands: comms.faults.MalformedFloodInjector)
+    malformed_flood_hz: float = 0.0
+    #: restart the killed agent (``kill_agent``) this many seconds after the kill (< 0: never; its vehicle then
+    #: lands on offboard loss). Restarted, it records into a new file (``drone_<i>.s002.mcap``) and takes its
+    #: vehicle -- held by the autopilot's offboard-loss action meanwhile -- over by its
+    #: ``safety.on_restart_airborne`` (the fault suite's scenario: "resume"; then the launcher re-sends the plan
+    #: and ``start`` to it; "land": it lands, by policy)
+    restart_agent_after_s: float = -1.0
+    #: the restart wakes a warm spare agent started with the others (``skycap agent --standby``: everything
+    #: imported, waiting for SIGUSR1) instead of starting a new process (a cold start: ~1-3 s of Python start and
+    #: imports on a loaded 2-core machine, all of it recording lost)
+    restart_from_standby: bool = True
+    #: the ground station's link lost at this time (< 0: never): its heartbeat stops for the rest of the flight
+    #: and the agents act by their ``safety.gcs_loss_action`` (land: a landing by policy)
+    gcs_link_lost_at_s: float = -1.0
+    #: this drone's MAVLink link (the built-in simulator's vehicle end) carries nothing, either way, for
+    #: ``mavlink_loss_s`` from ``mavlink_loss_at_s``
+    mavlink_loss_drone: str = ""
+    mavlink_loss_at_s: float = 10.0
+    mavlink_loss_s: float = 3.0
+    #: a fault of this drone's recorder at ``recorder_fault_at_s``: "disk_full" (the disk refuses every further
+    #: write with ENOSPC; simulated in the recorder, see flightdata.recorder) or "killed" (the recorder's writer
+    #: thread dies of an injected error); the launcher signals the agent (``record.fault_signals``)
+    recorder_fault_drone: str = ""
+    recorder_fault: str = ""
+    recorder_fault_at_s: float = 10.0
 
 
 @dataclass
@@ -222,16 +258,25 @@ class DemoConfig:
             raise ConfigError(f"track.detections={self.track.detections!r}; use 'sim' or 'onnx'")
         ids = _drone_ids(self.drones)
         f = self.faults
-        for name in ("kill_agent", "gps_jump_drone"):
+        for name in ("kill_agent", "gps_jump_drone", "mavlink_loss_drone", "recorder_fault_drone"):
             v = getattr(f, name)
             if v and v not in ids:
                 raise ConfigError(f"faults.{name}={v!r} is not one of the drones {ids}")
         if f.kill_agent and self.drones < 2:
             raise ConfigError("faults.kill_agent needs at least 2 drones (the others must carry on)")
+        if f.restart_agent_after_s >= 0 and not f.kill_agent:
+            raise ConfigError("faults.restart_agent_after_s restarts the killed agent: set faults.kill_agent too")
+        if f.recorder_fault not in ("", "disk_full", "killed") or bool(f.recorder_fault) != bool(f.recorder_fault_drone):
+            raise ConfigError(f"faults.recorder_fault={f.recorder_fault!r}: use 'disk_full' or 'killed', with "
+                              "faults.recorder_fault_drone naming the drone (both or neither)")
+        if f.mavlink_loss_drone and not 0 < f.mavlink_loss_s <= 60:
+            raise ConfigError(f"faults.mavlink_loss_s={f.mavlink_loss_s}: use 0 < s <= 60")
         if len(f.gps_jump_ned_m) != 3:
             raise ConfigError(f"faults.gps_jump_ned_m={f.gps_jump_ned_m}: give [north, east, down] metres")
-        if not 0.0 <= f.drop_prob <= 1.0 or f.detection_delay_s < 0 or f.malformed_detections_hz < 0:
-            raise ConfigError("faults: drop_prob in 0..1, detection_delay_s >= 0, malformed_detections_hz >= 0")
+        if not 0.0 <= f.drop_prob <= 1.0 or f.detection_delay_s < 0 or f.malformed_detections_hz < 0 or \
+                f.malformed_flood_hz < 0:
+            raise ConfigError("faults: drop_prob in 0..1, detection_delay_s >= 0, malformed_detections_hz >= 0, "
+                              "malformed_flood_hz >= 0")
         if self.autopilot not in ("builtin", "px4"):
             raise ConfigError(f"autopilot={self.autopilot!r}; use 'builtin' or 'px4'")
         if not 1 <= self.sorties <= 20 or self.sortie_pause_s < 0:
@@ -244,6 +289,9 @@ class DemoConfig:
             if f.gps_jump_drone:
                 raise ConfigError("faults.gps_jump_drone acts on the built-in simulator's estimator; PX4's cannot be "
                                   "offset from outside: leave it out with --autopilot px4")
+            if f.mavlink_loss_drone:
+                raise ConfigError("faults.mavlink_loss_drone acts on the built-in simulator's vehicle link: leave it "
+                                  "out with --autopilot px4")
             if self.mavlink_base != DemoConfig.mavlink_base:
                 raise ConfigError("mavlink_base is the built-in simulator's; with --autopilot px4 the ports follow "
                                   "the PX4 instances (14540 + instance): set px4_first_instance instead")
@@ -357,7 +405,13 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                               SimTruth)
     fleet = FleetClient(cfg.fleet, bus, heartbeat_hz=2.0)
     summary = None
-    killed: set[str] = set()
+    killed: set[str] = set()  #: process names SIGKILLed by the fault injection
+    down: set[str] = set()  #: drones without an agent (killed, not restarted)
+    agent_proc = {d: d for d in ids}  #: each drone's current agent process name
+    agent_cmds: dict[str, list[str]] = {}
+    ended: dict[str, str] = {}  #: how each drone's flight ended (summary.json drones.<id>.ended)
+    last_health: dict[str, dict] = {}  #: each drone's last health report seen by the fleet client
+    pending: dict[str, float] = {}  #: scheduled launcher-side faults not yet done: name -> time (UNIX s)
     plans: list = []  #: every sortie's orbit plan, in order
     sortie_error: dict = {}  #: the sortie that failed after an orbit was flown, and why
     orbits_flown = [0]  #: sorties whose orbit was flown to its end (landing may still have failed)
@@ -377,7 +431,9 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         if fc.gps_jump_drone:
             sim_cmd += ["--gps-jump", ",".join([str(ids.index(fc.gps_jump_drone)), str(fc.gps_jump_at_s),
                                                 *map(str, fc.gps_jump_ned_m)])]
-        if fc.kill_agent:
+        if fc.mavlink_loss_drone:
+            sim_cmd += ["--link-loss", f"{ids.index(fc.mavlink_loss_drone)},{fc.mavlink_loss_at_s},{fc.mavlink_loss_s}"]
+        if fc.kill_agent and fc.restart_agent_after_s < 0:
             # the orphaned vehicle lands on offboard loss (PX4 COM_OBL_RC_ACT = 4), set just before its agent dies
             # (earlier, a load-induced setpoint stall would land it too; the fleet otherwise holds and resumes)
             sim_cmd += ["--param-at", f"{ids.index(fc.kill_agent)},{max(0.0, fc.kill_agent_at_s - 0.2)},COM_OBL_RC_ACT,4"]
@@ -401,9 +457,14 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             if fc.drop_prob > 0 or fc.detection_delay_s > 0:
                 cmd += ["--set", f"transport.fault.drop_prob={fc.drop_prob}", "--set",
                         f"transport.fault.delay_s={fc.detection_delay_s}", "--set", f"transport.fault.seed={i + 1}"]
+            if d == fc.recorder_fault_drone:
+                cmd += ["--set", "record.fault_signals=true"]
             for s in cfg.agent_set:
                 cmd += ["--set", s]
+            agent_cmds[d] = cmd
             procs.start(d, cmd)
+            if d == fc.kill_agent and fc.restart_agent_after_s >= 0 and fc.restart_from_standby:
+                procs.start(f"{d}.standby", cmd + ["--standby"])
 
         # 4. the flight
         def all_(pred):
@@ -419,15 +480,18 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         # track mode: the plan's centre is the operator's approximate start position of the person, its slots
         # the formation's angles (no turning: the formation follows the person)
         center = tuple(cfg.track.start_guess_ned_m) if track else tuple(o.center_ned_m)
-        injector = None
-        if fc.malformed_detections_hz > 0:
+        injector = flood = None
+        if fc.malformed_detections_hz > 0 or fc.malformed_flood_hz > 0:
             # a faulty teammate: its messages are published under the drones' own certificates (an outsider's
-            # could not even reach the fleet)
+            # could not even reach the fleet); the flood's malformed commands under the ground station's
             impostor = _AsTheDrones(endpoint, fleet_keys, ids[:2])
             closers.append(impostor.close)
-            injector = MalformedDetectionsInjector(impostor, cfg.fleet, ids, fc.malformed_detections_hz)
+            if fc.malformed_detections_hz > 0:
+                injector = MalformedDetectionsInjector(impostor, cfg.fleet, ids, fc.malformed_detections_hz)
+            if fc.malformed_flood_hz > 0:
+                flood = MalformedFloodInjector(_ByKeyOwner(bus, impostor), cfg.fleet, ids, fc.malformed_flood_hz)
         def fly_sortie(sortie: int) -> None:
-            alive = [d for d in ids if d not in killed]
+            alive = [d for d in ids if d not in down]
             if sortie > 1:
                 log.info("sortie %d of %d: %.0f s on the ground, then take-off again", sortie, cfg.sorties,
                          cfg.sortie_pause_s)
@@ -457,34 +521,104 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                      f"start (sortie {sortie})")
             t_start = plan.start_time_ns * 1e-9
             t_orbit_end = t_start + cfg.duration_s
+            if sortie == 1:
+                if fc.kill_agent:
+                    pending["kill"] = t_start + fc.kill_agent_at_s
+                if fc.gcs_link_lost_at_s >= 0:
+                    pending["gcs_link"] = t_start + fc.gcs_link_lost_at_s
+                if fc.recorder_fault:
+                    pending["recorder"] = t_start + fc.recorder_fault_at_s
             log.info("sortie %d: %s for %.0f s", sortie, "tracking" if track else "orbiting", cfg.duration_s)
             next_table = time.time()
             while time.time() < t_orbit_end:
                 procs.check_alive(skip=killed)
                 now = time.time()
                 # faults: in the first sortie (their times count from its plan's start)
-                if sortie == 1 and fc.kill_agent and fc.kill_agent not in killed and now >= t_start + fc.kill_agent_at_s:
+                if "kill" in pending and now >= pending["kill"]:
+                    del pending["kill"]
                     p = dict(procs.items)[fc.kill_agent]
                     os.killpg(p.pid, signal.SIGKILL)
                     killed.add(fc.kill_agent)
+                    down.add(fc.kill_agent)
                     fault_report["agent_killed"] = {"drone": fc.kill_agent, "t_s": round(now, 3),
                                                     "after_start_s": round(now - t_start, 2)}
                     log.warning("FAULT: killed %s's agent (SIGKILL, pid %d) %.1f s after the start", fc.kill_agent,
                                 p.pid, now - t_start)
+                    if fc.restart_agent_after_s >= 0:
+                        pending["restart"] = now + fc.restart_agent_after_s
+                if "restart" in pending and now >= pending["restart"]:
+                    del pending["restart"]
+                    d = fc.kill_agent
+                    if fc.restart_from_standby:
+                        agent_proc[d] = f"{d}.standby"
+                        os.kill(dict(procs.items)[agent_proc[d]].pid, signal.SIGUSR1)  # wake the warm spare
+                    else:
+                        agent_proc[d] = f"{d}.restart"
+                        procs.start(agent_proc[d], agent_cmds[d])
+                    down.discard(d)
+                    pending["resume"] = now + 60.0  # give up resuming it after this
+                    fault_report["agent_restarted"] = {"drone": d, "t_s": round(now, 3),
+                                                       "after_start_s": round(now - t_start, 2),
+                                                       "how": "warm standby woken" if fc.restart_from_standby
+                                                       else "cold start of a new process"}
+                    log.warning("FAULT: restarted %s's agent %.1f s after the start (%s)", d, now - t_start,
+                                fault_report["agent_restarted"]["how"])
+                if "resume" in pending:
+                    d = fc.kill_agent
+                    h = fleet.healths.get(d)
+                    if h is not None and h.state in ("hover", "paused") and \
+                            h.header.t_sent_ns * 1e-9 > fault_report["agent_restarted"]["t_s"]:
+                        del pending["resume"]
+                        # the latched plan is too old for the new agent to accept: send it again, then start it
+                        t_sent_ns = time.time_ns()
+                        fleet.send_plan(plan)  # then start, once it has the plan (the two keys are not ordered)
+                        fleet.wait_until(lambda f: any(a.command_id == plan.plan_id and a.header.sender_id == d and
+                                                       a.header.t_sent_ns > t_sent_ns for a in f.acks), 5.0, "plan ack")
+                        acks = [a for a in fleet.acks if a.command_id == plan.plan_id and a.header.sender_id == d
+                                and a.header.t_sent_ns > t_sent_ns]
+                        acks += fleet.command("start", target=d, wait_s=5.0,
+                                              results=("accepted", "refused", "failed")).values()
+                        fault_report["agent_restarted"].update(
+                            resumed_after_start_s=round(time.time() - t_start, 2),
+                            resume_acks=[f"{a.command_id}: {a.result}{': ' + a.reason if a.reason else ''}"
+                                         for a in acks])
+                        log.warning("%s's restarted agent took its vehicle over: plan and start re-sent: %s", d,
+                                    fault_report["agent_restarted"]["resume_acks"])
+                    elif now >= pending["resume"]:
+                        del pending["resume"]
+                        log.error("%s's restarted agent did not take its vehicle over (hover) within 60 s", d)
+                if "gcs_link" in pending and now >= pending["gcs_link"]:
+                    del pending["gcs_link"]
+                    fleet.stop_heartbeat()
+                    fault_report["gcs_link_lost"] = {"t_s": round(now, 3), "after_start_s": round(now - t_start, 2)}
+                    log.warning("FAULT: the ground station's link lost (heartbeat stopped) %.1f s after the start",
+                                now - t_start)
+                if "recorder" in pending and now >= pending["recorder"]:
+                    del pending["recorder"]
+                    d = fc.recorder_fault_drone
+                    p = dict(procs.items)[agent_proc[d]]
+                    os.kill(p.pid, signal.SIGUSR2 if fc.recorder_fault == "disk_full" else signal.SIGUSR1)
+                    fault_report["recorder_fault"] = {"drone": d, "fault": fc.recorder_fault, "t_s": round(now, 3),
+                                                      "after_start_s": round(now - t_start, 2)}
+                    log.warning("FAULT: %s's recorder %s %.1f s after the start", d, fc.recorder_fault, now - t_start)
                 if sortie == 1 and injector is not None and now >= t_start:
                     injector.tick(now)
+                if sortie == 1 and flood is not None and now >= t_start:
+                    flood.t_next = flood.t_next or now
+                    while flood.t_next <= now:  # catch up: the rate kept whatever the loop's period
+                        flood.tick(flood.t_next)
                 if now >= next_table:
                     next_table += 10.0
                     print(fleet.table(), flush=True)
-                time.sleep(0.5 if injector is None else min(0.5, 0.5 / fc.malformed_detections_hz))
+                busy = pending or flood is not None
+                time.sleep(min(0.1 if busy else 0.5, 0.5 / fc.malformed_detections_hz if injector is not None else 1.0))
             if sortie == 1 and injector is not None:
                 fault_report["malformed_detections_injected"] = dict(injector.counts)
+            if sortie == 1 and flood is not None:
+                fault_report["malformed_messages_injected"] = dict(flood.counts)
             orbits_flown[0] = sortie
-            alive = [d for d in ids if d not in killed]
-            _require(fleet.command("land", wait_s=10, expect=alive, results=("accepted", "refused", "failed")), alive,
-                     f"land (sortie {sortie})")
-            landed = fleet.wait_until(lambda f: all(f.healths[d].state == "landed" for d in alive), cfg.land_timeout_s,
-                                      "landed")
+            alive = [d for d in ids if d not in down]
+            landed = _land_airborne(fleet, alive, cfg.land_timeout_s, ended, f"sortie {sortie}")
             print(fleet.table(), flush=True)
             if not landed:
                 log.error("sortie %d: not every drone landed within %.0f s", sortie, cfg.land_timeout_s)
@@ -501,13 +635,18 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                 # a sortie failed after an orbit was flown: keep what was measured, bring everyone down, report it
                 log.error("sortie %d failed: %s; landing every drone and summarising the orbits flown", sortie, e)
                 sortie_error.update(sortie=sortie, error=str(e))
-                alive = [d for d in ids if d not in killed]
-                fleet.command("land", wait_s=10, expect=alive, results=("accepted", "refused", "failed"))
-                fleet.wait_until(lambda f: all(f.healths[d].state not in _AIRBORNE_STATES for d in alive),
-                                 cfg.land_timeout_s, "on the ground")
+                alive = [d for d in ids if d not in down]
+                try:
+                    _land_airborne(fleet, alive, cfg.land_timeout_s, ended, f"sortie {sortie}, after its failure")
+                except SkycapError as e2:
+                    log.error("landing after the failure: %s", e2)
                 break
     finally:
-        codes = procs.stop([d for d in ids if d not in killed], timeout_s=30.0)
+        # each drone's last health as the fleet client saw it (its warnings: failsafes, a failed recorder -- which
+        # the drone's own recording may lack)
+        for d, h in dict(fleet.healths).items():
+            last_health[d] = {"state": h.state, "ok": h.ok, "warnings": list(h.warnings)}
+        codes = procs.stop([agent_proc[d] for d in ids if agent_proc[d] not in killed], timeout_s=30.0)
         codes.update(procs.stop(None, timeout_s=15.0))
         bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM) and n not in killed}
         if bad:
@@ -537,8 +676,20 @@ def run_demo(cfg: DemoConfig) -> dict | None:
             recon["summary"] = json.loads(fresh[0].read_text())
         log.info("skycap reconstruct %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
                  logs / "reconstruct.log")
-    summary = summarize_flight(out, settle_s=cfg.settle_s)  # the first sortie (plan.json)
-    if cfg.sorties > 1:
+    try:
+        summary = summarize_flight(out, settle_s=cfg.settle_s)  # the first sortie (plan.json)
+    except SkycapError as e:
+        # e.g. the drones were landed before a steady orbit (by someone else, or a failsafe): no orbit figures,
+        # the summary still says what happened
+        log.error("no orbit figures: %s", e)
+        summary = {"flight_dir": str(out), "error": f"no orbit figures: {e}", "drones": {}, "fleet": {}}
+    for d in ids:
+        if d in last_health:
+            summary["drones"].setdefault(d, {})["last_health"] = last_health[d]
+        summary["drones"].setdefault(d, {})["ended"] = ended.get(d) or (
+            "agent killed (SIGKILL), not restarted: its vehicle was left to the autopilot's offboard-loss action"
+            if d in down else "unknown (the flight did not reach its final land command)")
+    if cfg.sorties > 1 and "error" not in summary:
         # one orbit per sortie in the same recordings (the agents were not restarted: drone_<i>.s001.mcap holds
         # every sortie); each scored against its own plan, up to the first land command after its start
         summary["sorties"] = [{"sortie": k + 1, "plan": msgspec.to_builtins(p),
@@ -551,7 +702,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if track:
         summary["mode"] = "track"
         summary["tracking"] = summarize_tracking(out, settle_s=cfg.settle_s)
-    if recon.get("exit_code") == 0:
+    if recon.get("exit_code") == 0 and "error" not in summary:
         # simulated flight: score the reconstruction against the simulator's truth (all frames, steady orbit)
         npz = (recon.get("summary") or {}).get("outputs", {}).get("npz")  # where the method wrote its motion
         recon["accuracy_vs_truth"] = reconstruction_accuracy(out, motion_npz=npz,
@@ -564,8 +715,10 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     for entry in summary.get("sorties", []):
         print(f"sortie {entry['sortie']} (frames, rates, min_separation_m and flight_s: whole flight):\n"
               + format_table(entry), flush=True)
-    if "sorties" not in summary:
+    if "sorties" not in summary and "error" not in summary:
         print(format_table(summary), flush=True)
+    for d in ids:
+        print(f"{d}: {summary['drones'][d]['ended']}", flush=True)
     if track:
         print(format_tracking_table(summary["tracking"]), flush=True)
     acc = recon.get("accuracy_vs_truth") or {}
@@ -578,6 +731,45 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         print(f"sortie {sortie_error['sortie']} of {cfg.sorties} FAILED: {sortie_error['error']}", flush=True)
     print(f"summary: {flight.summary_path}", flush=True)
     return summary
+
+
+def _land_airborne(fleet: FleetClient, alive: list[str], timeout_s: float, ended: dict[str, str], what: str) -> bool:
+    """The final land: sent to the drones of ``alive`` still in the air; the ones already on the ground (landed
+    by someone else, by a failsafe) are noted in ``ended``, not an error. Waits up to ``timeout_s`` until none
+    of ``alive`` is airborne; returns whether that happened."""
+    def state(d: str) -> str:
+        h = fleet.healths.get(d)
+        return h.state if h is not None else "unknown (no health report)"
+
+    def already_down(d: str) -> None:
+        ended[d] = f"on the ground before the final land command (state {state(d)}; landed by a failsafe or " \
+                   "another client's command)"
+        log.warning("%s: %s", d, ended[d])
+
+    airborne = [d for d in alive if state(d) in _AIRBORNE_STATES and state(d) not in ("landing", "returning")]
+    for d in alive:
+        if state(d) in ("landing", "returning"):
+            ended[d] = f"{state(d)} before the final land command (by a failsafe or another client's command)"
+            log.warning("%s: %s", d, ended[d])
+        elif d not in airborne:
+            already_down(d)
+    if airborne:
+        acks = fleet.command("land", wait_s=10, expect=airborne, results=("accepted", "refused", "failed"))
+        for d in list(airborne):
+            a = acks.get(d)
+            if a is not None and a.result == "refused" and "not airborne" in a.reason:
+                airborne.remove(d)  # it touched down between the look and the command
+                acks.pop(d)
+                already_down(d)
+        _require(acks, airborne, f"land ({what})")
+        for d in airborne:
+            ended[d] = "landed by the final land command"
+    ok = fleet.wait_until(lambda f: all(state(d) not in _AIRBORNE_STATES for d in alive), timeout_s, "landed")
+    if not ok:
+        for d in alive:
+            if state(d) in _AIRBORNE_STATES:
+                ended[d] = f"still airborne {timeout_s:.0f} s after the final land command (state {state(d)})"
+    return ok
 
 
 def _require(acks: dict, ids: list[str], what: str) -> None:
@@ -676,6 +868,17 @@ class _AsTheDrones:
     def close(self) -> None:
         for b in self.buses.values():
             b.close()
+
+
+class _ByKeyOwner:
+    """``publish_raw`` on a ground-station key through the launcher's own session (the ground station's
+    certificate), on a drone's key through :class:`_AsTheDrones`."""
+
+    def __init__(self, gcs_bus: Transport, drones: _AsTheDrones):
+        self.gcs_bus, self.drones = gcs_bus, drones
+
+    def publish_raw(self, key: str, data: bytes) -> None:
+        (self.gcs_bus if keys.parse_key(key)[1] == keys.GCS else self.drones).publish_raw(key, data)
 
 
 def _camera_command() -> list[str]:

@@ -183,3 +183,57 @@ class MalformedDetectionsInjector:
         except Exception as e:
             log.warning("malformed-detection injection failed: %s", e)
         self.n += 1
+
+
+class MalformedFloodInjector:
+    """A flood of malformed messages on the keys every agent listens to, also in orbit mode (fault injection),
+    at ``rate_hz``, cycling through:
+
+    0. ``nan_state``: a VehicleState with a NaN position as the second drone's state (``<d2>/state``);
+    1. ``garbage_state``: bytes that are no message at all, on ``<d2>/state``;
+    2. ``nan_command``: a ground-station ``takeoff`` command with a NaN altitude (``gcs/cmd``);
+    3. ``garbage_command``: garbage bytes on ``gcs/cmd``.
+
+    Every one must be refused by the receiving transport's codec (counted in its ``TopicStats.malformed``) and
+    never reach the agent. With one drone, the states go on its own key.
+    """
+
+    KINDS = ("nan_state", "garbage_state", "nan_command", "garbage_command")
+
+    def __init__(self, bus, fleet: str, ids: list[str], rate_hz: float):
+        self.bus, self.fleet, self.ids, self.period_s = bus, fleet, ids, 1.0 / rate_hz
+        self.t_next = 0.0
+        self.n = 0
+        self.counts = {k: 0 for k in self.KINDS}
+        self._rng = random.Random(1)
+
+    def message(self, kind: str, t_ns: int) -> tuple[str, bytes]:
+        from shared_msgs.messages import Command, VehicleState
+
+        mate = self.ids[1] if len(self.ids) > 1 else self.ids[0]
+        if kind in ("nan_state", "garbage_state"):
+            key = _keys.drone_key(self.fleet, mate, _keys.STATE)
+        else:
+            key = _keys.gcs_key(self.fleet, _keys.CMD)
+        if kind.startswith("garbage"):
+            return key, bytes(self._rng.getrandbits(8) for _ in range(48))
+        if kind == "nan_state":
+            msg = VehicleState(header=VehicleState.make_header(mate, t_ns), position_ned_m=(float("nan"), 0.0, -6.0),
+                               velocity_ned_m_s=(0.0, 0.0, 0.0), q_world_body=(1.0, 0.0, 0.0, 0.0))
+        else:
+            msg = Command(header=Command.make_header(_keys.GCS), command_id=f"chaos-{self.n}", target="*",
+                          action="takeoff", params={"altitude_m": float("nan")})
+        return key, encode(stamp_sent(msg))  # raw bytes: the sender-side validation is bypassed on purpose
+
+    def tick(self, now_s: float) -> None:
+        if now_s < self.t_next:
+            return
+        self.t_next = now_s + self.period_s
+        kind = self.KINDS[self.n % len(self.KINDS)]
+        key, data = self.message(kind, int(now_s * 1e9))
+        try:
+            self.bus.publish_raw(key, data)
+            self.counts[kind] += 1
+        except Exception as e:
+            log.warning("malformed-message injection failed: %s", e)
+        self.n += 1

@@ -15,6 +15,7 @@ Layout (version :data:`LAYOUT_VERSION`; every name below is spelled here and now
       <drone_id>.s<NNN>.mcap          one recording per agent start (sortie NNN = 001, 002, ...), MCAP
       <drone_id>.s<NNN>.config.toml   the agent's resolved configuration of that sortie
       <drone_id>.s<NNN>.track.json    the agent's tracking / failsafe counters of that sortie (track mode)
+      <drone_id>.s<NNN>.transport.json  the agent's transport counters of that sortie (received, refused and why)
       truth.mcap                      the simulator's ground truth (simulated flights only)
       plan.json                       the orbit plan the ground station sent (OrbitPlan, JSON)
       config.toml                     the resolved configuration of the job that made the folder
@@ -103,6 +104,12 @@ class Sortie:
     def track_stats_path(self) -> Path:
         """The agent's counters of this sortie (``<drone>.s<NNN>.track.json``)."""
         return self.path.with_suffix(".track.json")
+
+    @property
+    def transport_stats_path(self) -> Path:
+        """The agent's transport counters of this sortie, per subscription (received, malformed and why, ...;
+        ``<drone>.s<NNN>.transport.json``)."""
+        return self.path.with_suffix(".transport.json")
 
     @property
     def config_path(self) -> Path:

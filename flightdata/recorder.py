@@ -31,11 +31,19 @@ and footer are written; recorders still open when the interpreter exits normally
 
 If the queue holds more than ``max_queue_bytes`` (the disk cannot keep up), new messages are dropped and
 counted (``stats()["dropped"]``), never blocking the flight code. If the writer thread fails (disk full,
-I/O error), :meth:`Recorder.record` raises :class:`RecorderError` naming the file and the cause.
+I/O error), :meth:`Recorder.record` raises :class:`RecorderError` naming the file and the cause; what was
+flushed before stays readable (the file then lacks its summary, as after a crash).
+
+Fault injection (simulation and fault tests only): :func:`simulate_disk_full` makes a folder's disk "full":
+from then on every recorder writing there fails its next write with ``OSError(ENOSPC)`` *before* writing
+anything of it (a real full disk may leave a torn last record, which the reader also skips), and no new
+recording can be created there. :meth:`Recorder.inject_writer_failure` kills a recorder's writer thread with
+an injected error, as a crash of it would (what it had not flushed is lost).
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -59,6 +67,7 @@ from skycap.errors import SkycapError
 
 __all__ = [
     "Recorder",
+    "simulate_disk_full",
     "RecorderError",
     "MESSAGE_ENCODING",
     "PROFILE",
@@ -108,6 +117,25 @@ class _Item:
 
 
 _STOP = object()
+_CRASH = object()
+
+#: folders whose disk is simulated full (:func:`simulate_disk_full`)
+_FULL_DISKS: set[Path] = set()
+
+
+def simulate_disk_full(folder: str | Path, full: bool = True) -> None:
+    """Fault injection: the disk of ``folder`` is full (``full=False``: has room again) for every recorder of
+    this process writing there (see the module doc)."""
+    p = Path(folder).resolve()
+    if full:
+        _FULL_DISKS.add(p)
+        log.warning("SIMULATED DISK FULL: %s", p)
+    else:
+        _FULL_DISKS.discard(p)
+
+
+def _disk_full(path: Path) -> bool:
+    return bool(_FULL_DISKS) and path.parent.resolve() in _FULL_DISKS
 
 
 _OPEN_RECORDERS: weakref.WeakSet = weakref.WeakSet()
@@ -161,6 +189,8 @@ class Recorder:
         self.max_queue_bytes = int(max_queue_bytes)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            if _disk_full(self.path):
+                raise OSError(errno.ENOSPC, "No space left on device (simulated disk full)")
             self._file = open(self.path, "xb")  # exclusive: a recording is never overwritten or truncated
         except FileExistsError:
             raise RecorderError(f"{self.path} already exists; a recording is never overwritten: record a new sortie "
@@ -233,6 +263,11 @@ class Recorder:
         """Record an :class:`comms.transport.Received` (its bytes, log time = its receive time)."""
         return self.record(topic, rx.data, rx.t_received_ns)
 
+    def inject_writer_failure(self, reason: str = "injected writer failure") -> None:
+        """Fault injection: the writer thread dies of ``RuntimeError(reason)`` when it reaches this point of the
+        queue (what it had not flushed is lost, as in a crash of it); :meth:`record` then raises."""
+        self._queue.put((_CRASH, reason))
+
     def stats(self) -> dict[str, int]:
         """Counters: written, bytes, dropped (queue full), invalid (not a skycap message), flushes, queued_bytes."""
         with self._lock:
@@ -249,6 +284,7 @@ class Recorder:
             _quiet_close(self._file)
             raise RecorderError(f"flight log {self.path} failed: {self._error}") from None
         try:
+            self._check_disk()
             self._writer.finish()
             self._file.flush()
             os.fsync(self._file.fileno())
@@ -305,7 +341,12 @@ class Recorder:
         self._counts["written"] += 1
         self._counts["bytes"] += len(item.data)
 
+    def _check_disk(self) -> None:
+        if _disk_full(self.path):
+            raise OSError(errno.ENOSPC, f"No space left on device (simulated disk full): {self.path}")
+
     def _flush(self) -> None:
+        self._check_disk()
         self._writer.flush()  # closes the chunk in progress and writes it with its message indexes
         os.fsync(self._file.fileno())
         self._counts["flushes"] += 1
@@ -327,9 +368,13 @@ class Recorder:
                             rest = self._queue.get_nowait()
                         except queue.Empty:
                             break
+                        if isinstance(rest, tuple) and rest[0] is _CRASH:
+                            raise RuntimeError(rest[1])
                         if rest is not _STOP:
                             self._dequeue(rest)
                     return
+                if isinstance(item, tuple) and item[0] is _CRASH:
+                    raise RuntimeError(item[1])
                 if item is not None:
                     self._dequeue(item)
                     dirty = True
@@ -345,6 +390,7 @@ class Recorder:
     def _dequeue(self, item: _Item) -> None:
         with self._lock:
             self._queued_bytes -= len(item.data)
+        self._check_disk()  # a full chunk is written to the file by add_message
         self._write(item)
 
 

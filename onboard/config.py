@@ -148,6 +148,15 @@ class RecordConfig:
     enabled: bool = True
     #: folder of the flight; the agent writes ``<dir>/<drone_id>.mcap``
     dir: str = "flights/latest"
+    #: longest time between the recorder's fsyncs: the most of the recording an agent crash (kill -9, power
+    #: loss) loses at the end of its file (the fault suite's budget is 1 s per crash, restart included)
+    flush_interval_s: float = 0.25
+    #: when the recorder fails (its writer died, an I/O error), open a new recording (the next sortie file) at
+    #: most this often (s); a failure to open one (disk full) is retried as often
+    reopen_interval_s: float = 5.0
+    #: fault injection (simulation and fault tests only, off on real drones): SIGUSR1 kills the recorder's
+    #: writer thread, SIGUSR2 makes the recording folder's disk "full" (flightdata.recorder.simulate_disk_full)
+    fault_signals: bool = False
 
 
 @dataclass

@@ -83,6 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     net.add_argument("--param-at", action="append", default=[], metavar="INDEX,AT_S,NAME,VALUE",
                      help="set vehicle INDEX's autopilot parameter NAME to VALUE AT_S seconds after the start time of "
                           "the first orbit plan (e.g. COM_OBL_RC_ACT=4: land on offboard loss); repeatable")
+    net.add_argument("--link-loss", action="append", default=[], metavar="INDEX,AT_S,FOR_S",
+                     help="fault injection: vehicle INDEX's offboard MAVLink link carries nothing (either way) for "
+                          "FOR_S seconds from AT_S seconds after the first orbit plan's start time; repeatable")
     add_config_args(p)
     p.set_defaults(func=_run)
 
@@ -96,6 +99,8 @@ def _run(args: argparse.Namespace) -> int:
     cfg = config_from_args(SimConfig, args, extra=extra).validate()
     if args.autopilot == "builtin" and (args.px4_dir or args.px4_first_instance):
         raise SkycapError("--px4-dir and --px4-first-instance are for --autopilot px4")
+    if args.autopilot == "px4" and args.link_loss:
+        raise SkycapError("--link-loss acts on the built-in simulator's vehicle link; leave it out with --autopilot px4")
     if args.autopilot == "px4" and args.gps_jump:
         raise SkycapError("--gps-jump acts on the built-in simulator's estimator; PX4's cannot be offset from "
                           "outside: leave it out with --autopilot px4 (or use --autopilot builtin)")
@@ -104,9 +109,9 @@ def _run(args: argparse.Namespace) -> int:
         net = SimNetwork(fleet=args.fleet, zenoh_connect=args.zenoh_connect, zenoh_keys=args.zenoh_keys or "",
                          truth_hz=args.truth_hz,
                          gimbal_pitch_rad=math.radians(args.gimbal_pitch_deg or 0.0),
-                         gps_jump=args.gps_jump, param_at=list(args.param_at))
-    elif args.gps_jump or args.param_at:
-        raise SkycapError("--gps-jump and --param-at act on the fleet's plan: give --fleet too")
+                         gps_jump=args.gps_jump, param_at=list(args.param_at), link_loss=list(args.link_loss))
+    elif args.gps_jump or args.param_at or args.link_loss:
+        raise SkycapError("--gps-jump, --param-at and --link-loss act on the fleet's plan: give --fleet too")
     if args.autopilot == "px4":
         return run_px4(cfg, px4_dir=args.px4_dir, first_instance=args.px4_first_instance, out=args.out,
                        duration_s=args.duration, status_every_s=args.status_every, net=net)
@@ -124,6 +129,7 @@ class SimNetwork:
     gimbal_pitch_rad: float = 0.0
     gps_jump: str | None = None
     param_at: list[str] = field(default_factory=list)
+    link_loss: list[str] = field(default_factory=list)
 
 
 def run_sim(cfg: SimConfig, out: Path | None = None, duration_s: float | None = None, status_every_s: float = 10.0,
@@ -142,7 +148,7 @@ def run_sim(cfg: SimConfig, out: Path | None = None, duration_s: float | None = 
     bus = None
     if net is not None:
         faults = SimFaults.parse(net.gps_jump, net.param_at, len(world.vehicles),
-                                 lambda name: world.vehicles[0].params.get(name) is not None)
+                                 lambda name: world.vehicles[0].params.get(name) is not None, net.link_loss)
         bus = Transport.open(TransportConfig.local_peer(net.zenoh_connect, net.zenoh_keys), "sim")
         bus.declare_alive(keys.alive_key(net.fleet, keys.SIM))
         TruthPublisher(world, bus, net.fleet, rate_hz=net.truth_hz, gimbal_pitch_rad=net.gimbal_pitch_rad)

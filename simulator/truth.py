@@ -83,11 +83,24 @@ class SimFaults:
 
     gps_jump: tuple[int, float, list[float]] | None = None
     params: list[tuple[int, float, str, float]] = field(default_factory=list)
+    #: [(vehicle index, at_s, for_s)]: the vehicle's offboard MAVLink link carries nothing for for_s
+    link_losses: list[tuple[int, float, float]] = field(default_factory=list)
 
     @classmethod
-    def parse(cls, gps_jump: str | None, param_at: list[str], n_vehicles: int, known_param) -> SimFaults:
-        """From the command line's ``INDEX,AT_S,N,E,D`` and ``INDEX,AT_S,NAME,VALUE`` texts."""
+    def parse(cls, gps_jump: str | None, param_at: list[str], n_vehicles: int, known_param,
+              link_loss: list[str] | None = None) -> SimFaults:
+        """From the command line's ``INDEX,AT_S,N,E,D``, ``INDEX,AT_S,NAME,VALUE`` and ``INDEX,AT_S,FOR_S``
+        texts."""
         out = cls()
+        for text in link_loss or []:
+            try:
+                idx_s, at_s, for_s = text.split(",")
+                out.link_losses.append((int(idx_s), float(at_s), float(for_s)))
+                if not 0 <= out.link_losses[-1][0] < n_vehicles or not float(for_s) > 0:
+                    raise ValueError
+            except ValueError:
+                raise SkycapError(f"--link-loss {text!r}: give INDEX,AT_S,FOR_S with INDEX < {n_vehicles} and "
+                                  "FOR_S > 0") from None
         if gps_jump:
             try:
                 idx_s, at_s, *off = gps_jump.split(",")
@@ -109,7 +122,7 @@ class SimFaults:
 
     @property
     def active(self) -> bool:
-        return self.gps_jump is not None or bool(self.params)
+        return self.gps_jump is not None or bool(self.params) or bool(self.link_losses)
 
 
 def schedule_faults(world: SimWorld, bus: Transport, fleet: str, faults: SimFaults) -> None:
@@ -130,6 +143,10 @@ def schedule_faults(world: SimWorld, bus: Transport, fleet: str, faults: SimFaul
             world.vehicles[i].schedule_gps_jump(t0_sim + at_s, off)
             log.warning("FAULT: GPS jump of vehicle %d by %s m scheduled at sim t=%.1f s", i, off, t0_sim + at_s)
         pending.extend(sorted((t0_sim + at, i, name, v) for i, at, name, v in faults.params))
+        for i, at_s, for_s in faults.link_losses:
+            world.endpoints[i].schedule_link_loss(t0_sim + at_s, for_s)
+            log.warning("FAULT: MAVLink link loss of vehicle %d for %.1f s scheduled at sim t=%.1f s", i, for_s,
+                        t0_sim + at_s)
 
     def apply_params(t_ns: int, truths) -> None:  # simulation loop
         while pending and pending[0][0] <= world.t_s:

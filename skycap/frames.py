@@ -21,7 +21,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+
+def _rotation():
+    """scipy's Rotation, imported on first use: importing scipy.spatial costs ~0.5 s, and the agent's start
+    (a restart after a crash is recording time lost) needs none of it before it flies."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 EARTH_RADIUS_M = 6378137.0
 
@@ -54,12 +61,12 @@ def invert_T(T: np.ndarray) -> np.ndarray:
 
 def R_world_body_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """Body FRD -> NED rotation from aerospace Euler angles (yaw-pitch-roll, intrinsic ZYX)."""
-    return Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
+    return _rotation().from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
 
 
 def euler_from_R_world_body(R: np.ndarray) -> tuple[float, float, float]:
     """(roll_rad, pitch_rad, yaw_rad) of a body FRD -> NED rotation."""
-    yaw, pitch, roll = Rotation.from_matrix(R).as_euler("ZYX")
+    yaw, pitch, roll = _rotation().from_matrix(R).as_euler("ZYX")
     return float(roll), float(pitch), float(yaw)
 
 
@@ -68,7 +75,7 @@ def R_body_cam(gimbal_pitch_rad: float = 0.0, gimbal_yaw_rad: float = 0.0) -> np
 
     ``gimbal_pitch_rad`` < 0 tilts the camera down (MAVLink gimbal convention), yaw > 0 turns it right.
     """
-    R_gimbal = Rotation.from_euler("ZY", [gimbal_yaw_rad, gimbal_pitch_rad]).as_matrix()
+    R_gimbal = _rotation().from_euler("ZY", [gimbal_yaw_rad, gimbal_pitch_rad]).as_matrix()
     return R_gimbal @ R_BODY_CAM_FORWARD
 
 

@@ -21,7 +21,6 @@ import bisect
 from collections import deque
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from skycap.frames import T_world_cam_mount
 
@@ -97,6 +96,8 @@ class CameraPoser:
             a = (t_ns - t0) / (t1 - t0)
             p = (1 - a) * self._p[i - 1] + a * self._p[i]
             w0, w1 = self._q[i - 1], self._q[i]
+            from scipy.spatial.transform import Rotation, Slerp  # here: scipy.spatial costs ~0.5 s at the agent's start
+
             rots = Rotation.from_quat([[w0[1], w0[2], w0[3], w0[0]], [w1[1], w1[2], w1[3], w1[0]]])
             x, y, z, w = Slerp([0.0, 1.0], rots)([a]).as_quat()[0]
             q = (w, x, y, z)

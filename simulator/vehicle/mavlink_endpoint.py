@@ -167,12 +167,36 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         self._texts_sent = vehicle.status_count
         self.command_log: list[tuple[int, int]] = []  # (MAV_CMD, MAV_RESULT) of every command answered
         self._last_partner_log = 0.0
+        #: simulated link losses (fault injection, :meth:`schedule_link_loss`): [(from_s, until_s)] in simulation
+        #: time; meanwhile nothing is sent and every datagram received is discarded (counted here)
+        self.link_losses: list[tuple[float, float]] = []
+        self.link_loss_dropped = {"sent": 0, "received": 0}
+        self._link_was_down = False
+
+    def schedule_link_loss(self, at_s: float, for_s: float) -> None:
+        """Fault injection: this link carries nothing, either way, from simulation time ``at_s`` for ``for_s``."""
+        self.link_losses.append((float(at_s), float(at_s) + float(for_s)))
+
+    def link_down(self) -> bool:
+        """Whether a simulated link loss is in progress (logs its start and end)."""
+        if not self.link_losses:
+            return False
+        t = self.clock()
+        down = any(a <= t < b for a, b in self.link_losses)
+        if down != self._link_was_down:
+            self._link_was_down = down
+            log.warning("SIMULATED MAVLINK LINK LOSS: vehicle %d %s link %s at sim t=%.2f s (dropped so far: %s)",
+                        self.vehicle.system_id, self.name, "DOWN" if down else "back up", t, self.link_loss_dropped)
+        return down
 
     # ------------------------------------------------------------------ asyncio plumbing
     def connection_made(self, transport) -> None:
         self.transport = transport
 
     def datagram_received(self, data: bytes, addr) -> None:
+        if self.link_down():
+            self.link_loss_dropped["received"] += 1
+            return
         if addr != self.remote:
             log.info("vehicle %d %s link: partner now %s:%d", self.vehicle.system_id, self.name, addr[0], addr[1])
             self.remote = addr
@@ -191,6 +215,9 @@ class MavlinkEndpoint(asyncio.DatagramProtocol):
         log.debug("vehicle %d %s link: %s", self.vehicle.system_id, self.name, exc)
 
     def _sendto(self, buf: bytes) -> None:
+        if self.link_down():
+            self.link_loss_dropped["sent"] += 1
+            return
         if self.transport is not None and not self.transport.is_closing():
             self.transport.sendto(buf, self.remote)
 

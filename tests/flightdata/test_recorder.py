@@ -180,3 +180,57 @@ def test_read_topic_is_in_log_time_order_even_when_truncated(tmp_path) -> None:
     cut.write_bytes(data[: len(data) - 30])
     for p in (path, cut):
         assert [s.header.seq for s in FlightLog(p).read_topic("state")] == [4, 5, 2, 3, 1]
+
+
+def _wait_error(rec: Recorder, timeout_s: float = 5.0) -> RecorderError:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        try:
+            rec.record_message("state", state(0, 1))
+        except RecorderError as e:
+            return e
+        time.sleep(0.02)
+    raise AssertionError("the recorder did not fail")
+
+
+def test_simulated_disk_full_keeps_what_was_written_readable(tmp_path) -> None:
+    from flightdata.recorder import simulate_disk_full
+
+    rec = Recorder(tmp_path / "d.mcap", flush_interval_s=0.05)
+    t0 = 1_700_000_000_000_000_000
+    for i in range(50):
+        rec.record_message("state", state(i, t0 + i))
+    time.sleep(0.3)  # flushed
+    simulate_disk_full(tmp_path)
+    try:
+        for i in range(50, 60):
+            rec.record_message("state", state(i, t0 + i))
+        e = _wait_error(rec)
+        assert "No space left on device" in str(e) and "d.mcap" in str(e), e
+        with pytest.raises(RecorderError, match="No space left"):
+            Recorder(tmp_path / "e.mcap")  # nor can a new recording be created there
+        with pytest.raises(RecorderError):
+            rec.close()
+    finally:
+        simulate_disk_full(tmp_path, full=False)
+    # everything written before the disk filled is still there, read as a crash-truncated file
+    got = read_topic(tmp_path / "d.mcap", "state")
+    assert [m.header.seq for m in got] == list(range(50))
+    # and recovered into a finalised file (flightdata.flightlog.recover), the mcap library reads all of it
+    from flightdata.flightlog import recover
+
+    recover(tmp_path / "d.mcap", tmp_path / "d.recovered.mcap")
+    with open(tmp_path / "d.recovered.mcap", "rb") as f:
+        assert sum(1 for _ in make_reader(f).iter_messages()) == 50
+
+
+def test_injected_writer_failure_surfaces_and_keeps_the_flushed_part(tmp_path) -> None:
+    rec = Recorder(tmp_path / "k.mcap", flush_interval_s=0.05)
+    t0 = 1_700_000_000_000_000_000
+    for i in range(20):
+        rec.record_message("state", state(i, t0 + i))
+    time.sleep(0.3)
+    rec.inject_writer_failure("test: writer killed")
+    e = _wait_error(rec)
+    assert "test: writer killed" in str(e)
+    assert len(read_topic(tmp_path / "k.mcap", "state")) >= 20

@@ -79,8 +79,33 @@ def test_outbox_publishes_and_records_what_it_sent_even_when_the_network_is_down
     with caplog.at_level(logging.ERROR):
         for _ in range(3):
             out.record(out.key(keys.STATE), b"x")
-    assert sum("recording on" in r.message for r in caplog.records) == 1  # a failing recorder: said once
+    assert sum("recording to" in r.message for r in caplog.records) == 1  # a failing recorder: said once
     Outbox("f", "drone_1", FakeBus(), None).record("k", b"x")  # no recorder: nothing to do
+
+
+def test_outbox_replaces_a_failed_recorder_and_reports_it():
+    first, second = FakeRecorder(), FakeRecorder()
+    made = [second]
+    warnings: list[str] = []
+    out = Outbox("f", "drone_1", FakeBus(), first)
+    out.on_record_failure = warnings.append
+    out.reopen_recorder = lambda: made.pop(0) if made else (_ for _ in ()).throw(OSError("No space left on device"))
+    out.reopen_interval_s = 0.05
+    out.record(out.key(keys.STATE), b"a")
+    first.fail = True
+    out.record(out.key(keys.STATE), b"b")  # fails on the first, goes to the new one at once
+    assert [r[1] for r in first.records] == [b"a"] and [r[1] for r in second.records] == [b"b"]
+    assert out.recorder is second and len(warnings) == 1 and "disk full" in warnings[0]
+    second.fail = True
+    for _ in range(3):
+        out.record(out.key(keys.STATE), b"c")  # no new recording can be opened (disk full): reported once
+        time.sleep(0.06)
+    assert out.recorder is None
+    assert sum("cannot open a new recording" in w for w in warnings) == 1, warnings
+    made.append(FakeRecorder())  # room again: the next try records
+    time.sleep(0.06)
+    out.record(out.key(keys.STATE), b"d")
+    assert out.recorder is not None and out.recorder.records[-1][1] == b"d"
 
 
 # --- teammates -------------------------------------------------------------------------------------------

@@ -135,3 +135,4 @@ def test_arm_waits_for_the_vehicle_before_following_a_disarm():
     assert m.vehicle(armed=False, in_air=False, at_altitude=False).state == State.ARMED  # not armed yet
     m.vehicle(armed=True, in_air=False, at_altitude=False)
     assert m.vehicle(armed=False, in_air=False, at_altitude=False).state == State.IDLE  # auto-disarm
+

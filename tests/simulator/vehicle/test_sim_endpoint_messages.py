@@ -249,3 +249,21 @@ def test_sys_status_prearm_clear_in_offboard_without_setpoints():
     r.ep.send_stream("SYS_STATUS")
     st = next(m for m in r.out.msgs if m.get_type() == "SYS_STATUS")
     assert st.onboard_control_sensors_health & M.MAV_SYS_STATUS_PREARM_CHECK
+
+
+def test_simulated_link_loss_drops_both_ways_for_its_window():
+    r = Rig()
+    r.ep.schedule_link_loss(r.v.t_s + 1.0, 3.0)
+    ping = r.client.ping_encode(0, 1, 0, 0).pack(r.client)
+    r.ep.tick(r.v.t_s)
+    r.ep.datagram_received(ping, ("127.0.0.1", 9))
+    n_before = len(r.out.msgs)
+    assert n_before > 0 and r.ep.link_loss_dropped == {"sent": 0, "received": 0}
+    fast_forward(r.v, 2.0)  # inside the window
+    r.ep.tick(r.v.t_s)
+    r.ep.datagram_received(ping, ("127.0.0.1", 9))
+    assert len(r.out.msgs) == n_before  # nothing sent
+    assert r.ep.link_loss_dropped["sent"] > 0 and r.ep.link_loss_dropped["received"] == 1
+    fast_forward(r.v, 3.0)  # after it
+    r.ep.tick(r.v.t_s)
+    assert len(r.out.msgs) > n_before
