@@ -47,7 +47,7 @@ COMMANDS_OF_MODULE = {
     "onboard.camera_cli": ("camera",),
     "flightdata.flightlog": ("log",),
     "onboard.detector.cli": ("detect",),
-    "groundstation.cli": ("fleet",),
+    "groundstation.cli": ("fleet", "gs"),
     "comms.cli": ("keys",),
     "reconstruction.cli": ("eval", "reconstruct"),
     "reconstruction.keypoints.cli": ("keypoints",),

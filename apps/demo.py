@@ -84,6 +84,7 @@ import msgspec
 
 from apps.supervisor import ProcessSupervisor
 from comms.faults import MalformedDetectionsInjector, MalformedFloodInjector
+from comms.outsider import OutsiderProbe
 from comms.security import FleetKeys
 from comms.transport import Transport, TransportConfig
 from evaluation.flight import (format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
@@ -185,6 +186,11 @@ class FaultsDemoConfig:
     recorder_fault_drone: str = ""
     recorder_fault: str = ""
     recorder_fault_at_s: float = 10.0
+    #: an outsider without the fleet's certificate (:class:`comms.outsider.OutsiderProbe`: plaintext, and a
+    #: foreign CA's "gcs" certificate) joins at this time (< 0: never) for ``outsider_s``, snoops and sends
+    #: 'land' to every drone twice a second; the report says what it got and whether any drone answered it
+    outsider_at_s: float = -1.0
+    outsider_s: float = 10.0
 
 
 @dataclass
@@ -417,6 +423,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     orbits_flown = [0]  #: sorties whose orbit was flown to its end (landing may still have failed)
     fault_report: dict = {"config": {k: v for k, v in vars(cfg.faults).items()}}
     closers: list = []  #: extra sessions to close at the end
+    outsider: list = [None]  #: the outsider probe while it runs (faults.outsider_at_s)
     t_begin = time.monotonic()
     try:
         # 1. simulator (+ truth); 2. cameras; 3. agents
@@ -528,6 +535,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                     pending["gcs_link"] = t_start + fc.gcs_link_lost_at_s
                 if fc.recorder_fault:
                     pending["recorder"] = t_start + fc.recorder_fault_at_s
+                if fc.outsider_at_s >= 0:
+                    pending["outsider"] = t_start + fc.outsider_at_s
             log.info("sortie %d: %s for %.0f s", sortie, "tracking" if track else "orbiting", cfg.duration_s)
             next_table = time.time()
             while time.time() < t_orbit_end:
@@ -601,6 +610,14 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                     fault_report["recorder_fault"] = {"drone": d, "fault": fc.recorder_fault, "t_s": round(now, 3),
                                                       "after_start_s": round(now - t_start, 2)}
                     log.warning("FAULT: %s's recorder %s %.1f s after the start", d, fc.recorder_fault, now - t_start)
+                if "outsider" in pending and now >= pending["outsider"]:
+                    if outsider[0] is None:
+                        outsider[0] = OutsiderProbe(endpoint.partition("/")[2], cfg.fleet, logs)
+                    outsider[0].tick(now)
+                    if now >= pending["outsider"] + fc.outsider_s:
+                        del pending["outsider"]
+                        fault_report["outsider"] = _outsider_report(outsider[0], fleet, now - t_start)
+                        outsider[0] = None
                 if sortie == 1 and injector is not None and now >= t_start:
                     injector.tick(now)
                 if sortie == 1 and flood is not None and now >= t_start:
@@ -813,6 +830,18 @@ def _autopilot_report(cfg: DemoConfig, px4_folder: Path | None) -> dict:
             "truth": "SIH HIL_STATE_QUATERNION (true state), resampled to SimTruth at "
                      f"{cfg.truth_hz:g} Hz; altitudes above SIH's ground",
             "position_estimate": "PX4 EKF2 on SIH's simulated sensors"}
+
+
+def _outsider_report(probe: OutsiderProbe, fleet: FleetClient, after_start_s: float) -> dict:
+    """What the outsider got: links, fleet messages received, commands sent, and any drone's answer to them."""
+    rep = probe.close()
+    ids = set(probe.command_ids)
+    answered = [f"{a.header.sender_id}: {a.result} {a.command_id}" for a in list(fleet.acks) if a.command_id in ids]
+    rep.update(answered=answered, ended_after_start_s=round(after_start_s, 2))
+    (log.error if answered or any(rep["links"].values()) or any(rep["received"].values()) else log.info)(
+        "outsider: links %s, fleet messages received %s, %d land commands sent, answered by the drones: %s",
+        rep["links"], rep["received"], rep["commands_sent"], answered or "none")
+    return rep
 
 
 def _fleet_keys(cfg: DemoConfig, ids: list[str]):

@@ -95,9 +95,10 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     Scenario("malformed_flood", "from the start, 50 malformed messages/s on the keys every agent listens to (NaN and "
              "garbage teammate states and ground-station commands) and 10/s malformed detections (NaN / inverted "
              "boxes, broken poses)", ("faults.malformed_flood_hz=50", "faults.malformed_detections_hz=10")),
-    Scenario("outsider_without_certificate", "a node without the fleet's certificate tries to subscribe (snoop) "
-             "and to command the drones", not_run="not run: needs the secure transport (mutual TLS in "
-             "comms.transport, being built); the scenario is registered and reports nothing until it is wired"),
+    Scenario("outsider_without_certificate", "from 5 s after the start, for 10 s, a node without the fleet's "
+             "certificate (plaintext tcp, and mutual TLS with a foreign CA's 'gcs' certificate) subscribes to the "
+             "whole fleet (snoop) and sends 'land' to every drone twice a second",
+             ("faults.outsider_at_s=5", "faults.outsider_s=10")),
     Scenario("recorder_disk_full", "{d1}'s recording disk is full from 10 s after the start (simulated in the "
              "recorder: every further write fails with ENOSPC, no new file can be created): the drone keeps "
              "flying, reports it in its health, and what was written stays readable",
@@ -269,6 +270,10 @@ def run_scenario(cfg: FaultsConfig, sc: Scenario, out: Path) -> dict:
         judged["drones"][d]["not_recordable_after_fault_s"] = judged["drones"][d]["recording_lost_s"]
         judged["drones"][d]["recording_lost_s"] = upto["recording_lost_s"]
         judged["drones"][d]["recording_gaps_before_fault"] = upto["recording_gaps"]
+    breach = _outsider_breach(((summary or {}).get("faults") or {}).get("outsider"))
+    if breach:
+        judged["safe"] = False
+        judged["unsafe_because"].append(breach)
     lost = {d: judged["drones"][d]["recording_lost_s"] for d in ids}
     budget = cfg.max_lost_per_crash_s if sc.crash else 0.0
     refused, fault_layer = _refused(flight, ids)
@@ -355,9 +360,27 @@ def _health_warnings(flight, ids: list[str]) -> dict[str, list[str]]:
     return out
 
 
+def _outsider_breach(rep: dict | None) -> str:
+    """Why an outsider's attempt breached the fleet ('' when it got nothing: no link, no message, no answer)."""
+    if rep is None:
+        return ""
+    why = []
+    if any(rep["links"].values()):
+        why.append(f"it got links {rep['links']}")
+    if any(rep["received"].values()):
+        why.append(f"it received fleet messages {rep['received']}")
+    if rep["answered"]:
+        why.append(f"drones answered its commands: {rep['answered'][:3]}")
+    return ("the outsider without a certificate: " + "; ".join(why)) if why else ""
+
+
 def _what_happened(sc: Scenario, judged: dict, ended: dict, warnings: dict, faults: dict, error: str,
                    t_start_s: float) -> str:
     parts = []
+    if "outsider" in faults:
+        o = faults["outsider"]
+        parts.append(f"outsider (plaintext + foreign CA): links {o['links']}, fleet messages received {o['received']}, "
+                     f"{o['commands_sent']} land commands sent, answered by {o['answered'] or 'no drone'}")
     for k in ("agent_killed", "agent_restarted", "gcs_link_lost", "recorder_fault"):
         if k in faults:
             f = faults[k]

@@ -109,9 +109,17 @@ def test_malformed_flood_is_refused(tmp_path):
     assert e["drones"]["drone_2"]["refused_messages"]["gcs/cmd"]["refused"] >= 0.8 * injected["nan_command"]
 
 
-def test_outsider_without_certificate_is_reported_not_run(tmp_path):
+def test_outsider_without_certificate_can_neither_snoop_nor_command(tmp_path):
     e, _ = _run(tmp_path, "outsider_without_certificate")
-    assert e["safe"] is None and e["what_happened"].startswith("not run: needs the secure transport"), e
+    _assert_safe(e)
+    o = e["launcher_faults"]["outsider"]
+    assert o["commands_sent"] >= 20, o  # 10 s, twice a second, from each of its two sessions
+    assert o["links"] == {"plain": 0, "foreign_ca": 0}, o
+    assert o["received"] == {"plain": 0, "foreign_ca": 0}, o
+    assert o["answered"] == [], o
+    for d in ("drone_1", "drone_2"):
+        assert e["drones"][d]["ended"] == "landed by the final land command", e["drones"][d]
+    assert "outsider" in e["what_happened"]
 
 
 def test_recorder_disk_full_keeps_flying_and_keeps_what_was_written(tmp_path):
