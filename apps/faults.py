@@ -380,7 +380,9 @@ def _what_happened(sc: Scenario, judged: dict, ended: dict, warnings: dict, faul
     if "outsider" in faults:
         o = faults["outsider"]
         parts.append(f"outsider (plaintext + foreign CA): links {o['links']}, fleet messages received {o['received']}, "
-                     f"{o['commands_sent']} land commands sent, answered by {o['answered'] or 'no drone'}")
+                     f"{o['commands_sent']} land commands sent, "
+                     + (f"{len(o['answered'])} answers from the drones (first: {o['answered'][:2]})" if o["answered"]
+                        else "answered by no drone"))
     for k in ("agent_killed", "agent_restarted", "gcs_link_lost", "recorder_fault"):
         if k in faults:
             f = faults[k]
