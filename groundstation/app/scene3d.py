@@ -195,7 +195,7 @@ class SkeletonView(Scene3DView):
         c = finite.mean(axis=0)
         self.target_ned = np.array([c[0], c[1], min(c[2], -0.9)])
         ext = float(np.ptp(finite[:, :2], axis=0).max()) if len(finite) > 1 else 2.0
-        self.distance_m = max(5.0, 1.6 * ext + 4.0)
+        self.distance_m = max(4.0, 1.2 * ext + 3.0)
         self.grid_half_m = max(4.0, ext / 2 + 3.0)
         self.grid_step_m = 1.0 if self.grid_half_m <= 20 else 5.0
 
@@ -283,12 +283,12 @@ class SkeletonPlayer(QWidget):
         self.time_label.setText("-")
         self.view.update()
 
-    def load(self, recon_dir: str | Path, flight_summary: str | Path | None = None) -> bool:
+    def load(self, recon_dir: str | Path, flight_summary: str | Path | None = None, method: str | None = None) -> bool:
         """Load ``recon_dir``/motion.npz (and summary.json for the metrics; the flight's summary.json for the
         accuracy against the simulator's truth when present); False with the reason shown when it cannot."""
         self.recon_dir = Path(recon_dir)
         self._update_rerun()
-        self.metrics.setText(self._metrics_text(flight_summary))
+        self.metrics.setText(self._metrics_text(flight_summary, method))
         try:
             t_ns, joints, names = load_motion(self.recon_dir / "motion.npz")
         except MotionError as e:
@@ -308,7 +308,7 @@ class SkeletonPlayer(QWidget):
         log.info("skeleton player: %d frames at %.1f Hz from %s", len(t_ns), 1 / self.frame_period_s(), self.recon_dir)
         return True
 
-    def _metrics_text(self, flight_summary) -> str:
+    def _metrics_text(self, flight_summary, method: str | None) -> str:
         lines = []
         s = {}
         p = self.recon_dir / "summary.json"
@@ -316,7 +316,7 @@ class SkeletonPlayer(QWidget):
             s = json.loads(p.read_text()) if p.exists() else {}
         except ValueError as e:
             lines.append(f"{p} unreadable: {e}")
-        method = self.recon_dir.name
+        method = method or s.get("method") or self.recon_dir.name
         parts = [f"method <b>{method}</b>"]
         for key, label, fmt in (("frames", "frames", "{:d}"), ("cameras", "cameras", "{:d}"),
                                 ("fit_seconds", "fit", "{:.1f} s")):
@@ -431,6 +431,27 @@ class Live3DView(Scene3DView):
         self.target_ned = np.array([0.0, 0.0, -2.0])
         self.grid_half_m = cfg.geofence.radius_m
         self.grid_step_m = 5.0 if cfg.geofence.radius_m > 15 else 2.0
+        self.user_moved = False  #: the operator turned or zoomed: no more automatic framing of the plan
+
+    def mousePressEvent(self, ev) -> None:
+        self.user_moved = True
+        super().mousePressEvent(ev)
+
+    def wheelEvent(self, ev) -> None:
+        self.user_moved = True
+        super().wheelEvent(ev)
+
+    def paintEvent(self, ev) -> None:
+        self._frame_plan()
+        super().paintEvent(ev)
+
+    def _frame_plan(self) -> None:
+        """Aim at the plan's orbit (centre, half its altitude) from a distance that shows the circle."""
+        plan = self.model.plan
+        if plan is None or self.user_moved:
+            return
+        self.target_ned = np.array([plan.center_ned_m[0], plan.center_ned_m[1], -plan.altitude_m / 2])
+        self.distance_m = max(10.0, 3.8 * plan.radius_m)
 
     def set_live_skeleton(self, joints_ned) -> None:
         """Draw a (17, 3) NED skeleton (COCO-17, metres); None removes it. The feed is
@@ -498,6 +519,7 @@ class Live3DView(Scene3DView):
                 self._segments(p, fr)
             if n_drawn:
                 drawn["drones"] += 1
+                p.setPen(colour)
                 self._label(p, pos + [0, 0, -0.8], f"{r.drone} {r.altitude_m:.1f} m"
                             + (f" ({r.age_s:.0f} s old)" if r.stale else ""))
         self.drawn = drawn

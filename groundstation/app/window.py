@@ -535,7 +535,7 @@ class MainWindow(QMainWindow):
             self.player.clear(f"{f.path.name} is not processed yet: press 'Process flight'")
             return
         d = max(dirs, key=lambda d: (d / "summary.json").stat().st_mtime)
-        self.player.load(d, f.summary_path)
+        self.player.load(d, f.summary_path, next(m for m in ("multiview", "monocular") if f.reconstruction_dir(m) == d))
 
     # --- operator actions -------------------------------------------------------------------------
     def selected_drones(self) -> list[str]:
@@ -694,7 +694,7 @@ class MainWindow(QMainWindow):
             self.model.log_event("warning", "", f"process flight {state}")
             return
         self.job_result_view.setPlainText(format_result(self.job_result))
-        self.player.load(self.job_result["outputs"]["dir"], job.flight.summary_path)
+        self.player.load(self.job_result["outputs"]["dir"], job.flight.summary_path, self.job_result.get("method"))
         self.model.log_event("info", "", f"process flight done in {elapsed:.0f} s: {self.job_result['outputs']['dir']}")
         self.refresh_flights()
 

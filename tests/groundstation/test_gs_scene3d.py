@@ -94,7 +94,7 @@ def test_player_loads_plays_at_the_files_rate_pauses_and_seeks(player, qtbot, tm
     i = player.frame
     elapsed = time.monotonic() - t0
     # real rate: about elapsed * 20 frames (the event loop may lag a frame or two; never ahead of the clock)
-    assert 0.5 * elapsed * RATE_HZ <= i <= elapsed * RATE_HZ + 1, (i, elapsed)
+    assert max(3.0, 0.3 * elapsed * RATE_HZ) <= i <= elapsed * RATE_HZ + 1, (i, elapsed)
     qtbot.mouseClick(player.play_btn, Qt.LeftButton)
     assert not player.playing
     stopped = player.frame
