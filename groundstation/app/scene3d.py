@@ -18,14 +18,16 @@ import math
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QPointF, Qt, QTimer
+from PySide6.QtCore import QLineF, QPointF, Qt, QTimer
 from PySide6.QtGui import QColor, QPainter, QPen
 from PySide6.QtWidgets import QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayout, QWidget
 
 from groundstation.app import view3d
+from groundstation.app.qtfix import NONE_GUARD
 from skycap.skeleton import COCO17_LIMBS, COCO17_NAMES
 
 log = logging.getLogger(__name__)
@@ -84,13 +86,11 @@ class Scene3DView(QWidget):
         """Draw (K, 2, 3) NED segments; returns how many were drawn (both ends in front of the camera)."""
         if len(segs_ned) == 0:
             return 0
-        uv = self.to_px(np.asarray(segs_ned, dtype=float).reshape(-1, 3)).reshape(-1, 2, 2)
-        n = 0
-        for a, b in uv:
-            if np.all(np.isfinite(a)) and np.all(np.isfinite(b)):
-                p.drawLine(QPointF(a[0], a[1]), QPointF(b[0], b[1]))
-                n += 1
-        return n
+        uv = self.to_px(np.asarray(segs_ned, dtype=float).reshape(-1, 3)).reshape(-1, 4)
+        uv = uv[np.all(np.isfinite(uv), axis=1)]
+        if len(uv):  # one Qt call for all of them (each Qt call costs; see qtfix)
+            p.drawLines([QLineF(*map(float, s)) for s in uv])
+        return len(uv)
 
     def _polyline(self, p: QPainter, pts_ned: np.ndarray) -> int:
         pts = np.asarray(pts_ned, dtype=float)
@@ -122,6 +122,7 @@ class Scene3DView(QWidget):
         if np.all(np.isfinite(tip)):
             p.drawText(QPointF(tip[0], tip[1]), "N")
         self.draw_scene(p)
+        NONE_GUARD.check()
         p.setPen(QColor(90, 90, 90))
         p.drawText(8, self.height() - 8, f"grid {self.grid_step_m:g} m  |  drag: turn, wheel: zoom  |  "
                    f"az {math.degrees(self.azimuth_rad) % 360:.0f} deg, el {math.degrees(self.elevation_rad):.0f} deg, "
@@ -373,15 +374,12 @@ class SkeletonPlayer(QWidget):
             self.slider.setValue(i)
             self.slider.blockSignals(False)
         if self.playing:  # a seek while playing: go on from there
-            import time
             self._play_t0 = (time.monotonic(), int(self.t_ns[i]))
         self.time_label.setText(f"{(self.t_ns[i] - self.t_ns[0]) / 1e9:.2f} / {(self.t_ns[-1] - self.t_ns[0]) / 1e9:.2f} s"
                                 f"  ({i + 1}/{len(self.t_ns)})")
         self.view.update()
 
     def play(self) -> None:
-        import time
-
         if self.view.joints_ned is None:
             return
         if self.view.frame >= len(self.t_ns) - 1:
@@ -399,8 +397,6 @@ class SkeletonPlayer(QWidget):
 
     def _tick(self) -> None:
         """The frame at the recording's time since play was pressed (real rate, frames skipped if painting lags)."""
-        import time
-
         t0, tn0 = self._play_t0
         want_ns = tn0 + int(1e9 * (time.monotonic() - t0))
         i = int(np.searchsorted(self.t_ns, want_ns, side="right")) - 1
