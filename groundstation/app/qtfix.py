@@ -5,13 +5,17 @@ the process aborts with "Fatal Python error: none_dealloc: deallocating None" (t
 after a minute of the 3D tab, in the fleet table's refresh).
 
 :class:`NoneRefGuard` keeps ``None``'s count from falling below where it was at start: :meth:`NoneRefGuard.check`
-(the window calls it on a 1 Hz timer, the 3D views after each paint) holds one extra reference for each one lost.
-Over-counting (a real reference dropped) only keeps a few bytes; nothing is done on Python >= 3.12.
+(the window calls it on a 1 Hz timer, the 3D views after each paint) adds back one reference for each one lost,
+straight to CPython's count (a list of held references would give them up again when freed at exit and abort
+there). Over-counting (a real reference dropped) costs nothing: None is never freed; nothing is done on
+Python >= 3.12 or outside CPython.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
+import platform
 import sys
 
 log = logging.getLogger(__name__)
@@ -21,9 +25,8 @@ __all__ = ["NoneRefGuard", "NONE_GUARD"]
 
 class NoneRefGuard:
     def __init__(self):
-        self.active = sys.version_info < (3, 12)
+        self.active = sys.version_info < (3, 12) and platform.python_implementation() == "CPython"
         self.floor = sys.getrefcount(None) if self.active else 0
-        self._pins: list[None] = []
         self.restored = 0  #: references given back so far
         self._warned = False
 
@@ -34,7 +37,7 @@ class NoneRefGuard:
         lost = self.floor - sys.getrefcount(None)
         if lost <= 0:
             return 0
-        self._pins.extend([None] * lost)
+        ctypes.c_ssize_t.from_address(id(None)).value += lost  # ob_refcnt, the object's first field
         self.restored += lost
         if not self._warned:
             self._warned = True
