@@ -52,7 +52,7 @@ class Scene3DView(QWidget):
         self.grid_half_m = 10.0
         self.grid_step_m = 1.0
         self._drag = None
-        self.setMinimumSize(320, 240)
+        self.setMinimumSize(200, 160)
 
     # --- camera -----------------------------------------------------------------------------------
     def camera(self) -> tuple[np.ndarray, np.ndarray]:
@@ -229,7 +229,6 @@ class SkeletonPlayer(QWidget):
         self.slider = QSlider(Qt.Horizontal)
         self.slider.valueChanged.connect(self.seek)
         self.time_label = QLabel("-")
-        self.time_label.setMinimumWidth(130)
         self.metrics = QLabel("")
         self.metrics.setWordWrap(True)
         self.metrics.setTextInteractionFlags(Qt.TextSelectableByMouse)
@@ -246,9 +245,11 @@ class SkeletonPlayer(QWidget):
         row.addWidget(self.play_btn)
         row.addWidget(self.slider, 1)
         row.addWidget(self.time_label)
-        row.addWidget(self.rerun_btn)
         lay.addLayout(row)
-        lay.addWidget(self.metrics)
+        row2 = QHBoxLayout()
+        row2.addWidget(self.metrics, 1)
+        row2.addWidget(self.rerun_btn, 0, Qt.AlignTop)
+        lay.addLayout(row2)
         self._set_enabled(False)
         self._update_rerun()
 
