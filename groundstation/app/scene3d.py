@@ -193,9 +193,11 @@ class SkeletonView(Scene3DView):
         finite = j[np.all(np.isfinite(j), axis=-1)]
         if len(finite) == 0:
             return
-        c = finite.mean(axis=0)
+        # robust to a reconstruction's outlier frames: the median and the 5..95 % spread, not the mean and extremes
+        c = np.median(finite, axis=0)
         self.target_ned = np.array([c[0], c[1], min(c[2], -0.9)])
-        ext = float(np.ptp(finite[:, :2], axis=0).max()) if len(finite) > 1 else 2.0
+        lo, hi = np.percentile(finite[:, :2], [5, 95], axis=0)
+        ext = float((hi - lo).max()) if len(finite) > 1 else 2.0
         self.distance_m = max(4.0, 1.2 * ext + 3.0)
         self.grid_half_m = max(4.0, ext / 2 + 3.0)
         self.grid_step_m = 1.0 if self.grid_half_m <= 20 else 5.0
