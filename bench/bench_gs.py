@@ -6,7 +6,8 @@
 The app (fleet model + real Qt window, offscreen, its timers at the configured rates: fleet table / map 5 Hz,
 thumbnails 1 Hz) runs in this process; the simulated fleet (simulator, cameras, agents) in child processes.
 Measured: this process's CPU time (every thread: Qt, Zenoh, the heartbeat) over the window, as % of one core,
-once with the Live view tab shown (thumbnails decoded) and once with the Map tab (thumbnails not decoded).
+once with the Live view tab shown (thumbnails decoded), once with the 3D tab (repainted at the table's 5 Hz, only
+while shown) and once with the Map tab (thumbnails not decoded).
 Target: <= 25 % of one core. Prints a table with the machine noted.
 """
 
@@ -65,7 +66,7 @@ def main() -> int:
             m.command("start", ids)
             pump_until(lambda: all(c.healths[d].state == "orbit" for d in ids), 20)
             load = "orbiting"
-        for tab in ("Live view", "Map / plan"):
+        for tab in ("Live view", "3D", "Map / plan"):
             win.show_tab(tab)
             pump(2.0)
             dec0, thumbs0 = win.thumbs.decoded, sum(m.thumb_count.values())
@@ -82,7 +83,7 @@ def main() -> int:
         win.close()
         session.close()
     print(f"\nground-station app CPU, {args.drones} simulated drones ({describe_machine()})")
-    print(f"UI rates: table/map {cfg.ui.table_hz:g} Hz, thumbnails {cfg.ui.thumbs_hz:g} Hz; window {args.seconds:g} s per view\n")
+    print(f"UI rates: table/map/3D {cfg.ui.table_hz:g} Hz, thumbnails {cfg.ui.thumbs_hz:g} Hz; window {args.seconds:g} s per view\n")
     print(f"{'view':12s} {'drones':14s} {'app CPU % of one core':>22s} {'thumbs rx':>10s} {'decoded':>8s} {'load avg':>9s}")
     for tab, load, cpu, rx, dec, la in rows:
         print(f"{tab:12s} {load:14s} {cpu:22.1f} {rx:10d} {dec:8d} {la:9.2f}")

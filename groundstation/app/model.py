@@ -160,6 +160,9 @@ class FleetModel:
         self.targets: dict[str, TargetEstimate] = {}
         self.formation: dict[str, FormationPlan] = {}  #: track mode: each drone's planned positions (MPC horizon)
         self.truth: SimTruth | None = None
+        #: a live (17, 3) COCO-17 skeleton, NED metres, drawn by the 3D tab: nothing fills it yet; a future live
+        #: triangulation of the drones' published keypoints would set it here (None = no live skeleton)
+        self.live_skeleton_ned = None
         self.events: list[Event] = []
         self.runs: list[CommandRun] = []
         self.plan: OrbitPlan | None = None

@@ -2,8 +2,9 @@
 the app's own widgets and actions; a PNG of the window after each step and ``DIR/selftest.json``.
 
 Steps: fleet up -> a plan with a bad field (refused, reason shown) -> plan the orbit (clicked centre; each drone
-accepts) -> checklist -> arm + take off (slide to confirm) -> start -> watch (map, live view) -> LAND ALL ->
-flight ended (agents stop, recordings closed) -> process flight (``skycap reconstruct``) -> result.
+accepts) -> checklist -> arm + take off (slide to confirm) -> start -> watch (live view, 3D view, map) -> LAND ALL ->
+flight ended (agents stop, recordings closed) -> process flight (``skycap reconstruct``) -> result (the 3D
+skeleton player showing a frame with its bones).
 """
 
 from __future__ import annotations
@@ -139,6 +140,12 @@ def run_selftest(out: str | Path, drones: int = 2, orbit_s: float = 20.0, proces
         step("watch_live_view", ok, f"thumbnails received {dict(m.thumb_count)}, shown for "
              f"{sorted(win.thumbs.showing())} of {ids}, detections "
              f"{ {d: len(m.detections[d].boxes) for d in ids if d in m.detections} }", "Live view")
+        # the 3D tab during the orbit: ok only if the last paint drew every drone
+        win.show_tab("3D")
+        ok = pump_until(lambda: win.view3d.drawn["drones"] >= len(ids), 5)
+        step("view_3d", ok, f"3D view drew {win.view3d.drawn['drones']} of {len(ids)} drones, "
+             f"{win.view3d.drawn['persons']} person marker(s); live skeleton bones {win.view3d.drawn['skeleton_bones']} "
+             f"(none published yet)", "3D")
         pump(max(0.0, orbit_s - (time.monotonic() - t_orbit)))
         rows = m.rows()
         step("watch_map", all(not r.stale for r in rows),
@@ -172,8 +179,16 @@ def run_selftest(out: str | Path, drones: int = 2, orbit_s: float = 20.0, proces
         res = win.job_result
         report["processed"] = res["summary"] if res else None
         report["processed_outputs"] = res["outputs"] if res else None
-        step("process_flight_result", res is not None, win.job_stage.text() + " | " +
-             win.job_result_view.toPlainText()[:300], "Flights")
+        win.show_tab("Flights")
+        pl = win.player
+        if pl.frames:
+            pl.seek(pl.frames // 2)  # a frame mid-flight
+        pump(0.3)
+        pl.view.grab()  # paints it: bones_drawn is the last paint's count
+        step("process_flight_result", res is not None and pl.frames > 0 and pl.view.bones_drawn > 0,
+             f"player: {pl.frames} frames, frame {pl.frame + 1} drew {pl.view.bones_drawn} bones"
+             + ("" if pl.frames else f" ({pl.view.message})") + " | " + win.job_stage.text() + " | "
+             + win.job_result_view.toPlainText()[:300], "Flights")
         step("event_log", True, f"{len(m.events)} events, {len(m.alerts())} alerts", "Event log")
         return report
     finally:

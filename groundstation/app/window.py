@@ -3,7 +3,7 @@ actions; no fleet logic lives here.
 
 Layout: a toolbar (fleet, security, heartbeat, alert banner, LAND ALL), the fleet table with the command bar,
 its slide-to-confirm and each drone's result on the left; tabs on the right: map / plan, checklist, live view,
-flights, event log.
+3D (drones, person, plan, fence), flights (with the result's 3D skeleton playback), event log.
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QFormLayout, QGridL
 from groundstation.app.config import GsConfig
 from groundstation.app.jobs import JobError, ReconstructJob, list_flights
 from groundstation.app.model import ACTIONS, CommandRun, FleetModel, PlanForm
+from groundstation.app.qtfix import NONE_GUARD
+from groundstation.app.scene3d import Live3DView, SkeletonPlayer
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +223,7 @@ class MapView(QWidget):
             p.drawText(pos + QPointF(10, -8), f"{r.drone} {r.altitude_m:.1f} m"
                        + (f" ({r.age_s:.0f} s old)" if r.stale else ""))
         p.end()
+        NONE_GUARD.check()
 
     def _footprint(self, r) -> list[tuple[float, float]] | None:
         alt = r.altitude_m
@@ -333,6 +336,9 @@ class MainWindow(QMainWindow):
         self.thumb_timer = QTimer(self)
         self.thumb_timer.timeout.connect(self.thumbs.refresh)
         self.thumb_timer.start(int(1000 / cfg.ui.thumbs_hz))
+        self.none_guard_timer = QTimer(self)  # PySide6 drops references to None: give them back (see qtfix)
+        self.none_guard_timer.timeout.connect(NONE_GUARD.check)
+        self.none_guard_timer.start(1000)
         self.refresh()
         self.refresh_flights()
 
@@ -403,6 +409,10 @@ class MainWindow(QMainWindow):
         sc.setWidget(self.thumbs)
         sc.setWidgetResizable(True)
         self.tabs.addTab(sc, "Live view")
+        # a tab of its own (not a toggle on the map): the map stays the 2D planning tool (click = orbit centre),
+        # and the 3D view paints only while its tab is shown
+        self.view3d = Live3DView(self.model, self.cfg)
+        self.tabs.addTab(self.view3d, "3D")
         self.tabs.addTab(self._flights_tab(), "Flights")
         self.log_view = QPlainTextEdit()
         self.log_view.setReadOnly(True)
@@ -471,6 +481,7 @@ class MainWindow(QMainWindow):
         return w
 
     def _flights_tab(self) -> QWidget:
+        outer = QSplitter(Qt.Horizontal)
         w = QWidget()
         lay = QVBoxLayout(w)
         self.flights_label = QLabel("")
@@ -505,7 +516,33 @@ class MainWindow(QMainWindow):
         lay.addWidget(self.job_result_view, 1)
         self.job_timer = QTimer(self)
         self.job_timer.timeout.connect(self.refresh_job)
-        return w
+        outer.addWidget(w)
+        res = QWidget()
+        rl = QVBoxLayout(res)
+        title = QLabel("<b>Result: 3D skeleton playback</b> (select a processed flight or process one)")
+        title.setWordWrap(True)
+        rl.addWidget(title)
+        self.player = SkeletonPlayer()
+        rl.addWidget(self.player, 1)
+        outer.addWidget(res)
+        outer.setSizes([300, 500])
+        self.flights.currentItemChanged.connect(self._flight_selected)
+        return outer
+
+    def _flight_selected(self, item, _prev=None) -> None:
+        """A processed flight selected: its newest reconstruction in the player."""
+        if item is None or self.job_timer.isActive():
+            return
+        from flightdata.folder import FlightFolder
+
+        f = FlightFolder(item.data(Qt.UserRole))
+        dirs = [f.reconstruction_dir(m) for m in ("multiview", "monocular")]
+        dirs = [d for d in dirs if (d / "summary.json").exists()]
+        if not dirs:
+            self.player.clear(f"{f.path.name} is not processed yet: press 'Process flight'")
+            return
+        d = max(dirs, key=lambda d: (d / "summary.json").stat().st_mtime)
+        self.player.load(d, f.summary_path, next(m for m in ("multiview", "monocular") if f.reconstruction_dir(m) == d))
 
     # --- operator actions -------------------------------------------------------------------------
     def selected_drones(self) -> list[str]:
@@ -664,6 +701,7 @@ class MainWindow(QMainWindow):
             self.model.log_event("warning", "", f"process flight {state}")
             return
         self.job_result_view.setPlainText(format_result(self.job_result))
+        self.player.load(self.job_result["outputs"]["dir"], job.flight.summary_path, self.job_result.get("method"))
         self.model.log_event("info", "", f"process flight done in {elapsed:.0f} s: {self.job_result['outputs']['dir']}")
         self.refresh_flights()
 
@@ -724,6 +762,11 @@ class MainWindow(QMainWindow):
                 self.log_view.appendHtml(f"<span style='color:{colour}'>{_html(e.line())}</span>")
             self._n_events = len(m.events)
         self.map.update()
+        self.view3d.rows = rows
+        if self.view3d.isVisible():  # repainted at the table's rate (5 Hz) and only while its tab is shown
+            if m.live_skeleton_ned is not None or self.view3d.live_skeleton_ned is not None:
+                self.view3d.set_live_skeleton(m.live_skeleton_ned)
+            self.view3d.update()
 
     def _fill_results(self, table: QTableWidget, run: CommandRun | None) -> None:
         if run is None:

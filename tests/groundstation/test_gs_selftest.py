@@ -24,7 +24,7 @@ def test_gs_selftest_whole_session_with_screenshots(tmp_path):
     names = [s["name"] for s in report["steps"]]
     assert r.returncode == 0 and report["ok"], r.stdout[-3000:] + r.stderr[-3000:]
     for want in ("fleet_up", "plan_refused_bad_field", "plan_orbit", "checklist", "takeoff_confirm", "takeoff",
-                 "start", "watch_live_view", "watch_map", "land_all", "process_flight_result"):
+                 "start", "watch_live_view", "view_3d", "watch_map", "land_all", "process_flight_result"):
         assert want in names, names
     for s in report["steps"]:
         png = out / s["screenshot"]
