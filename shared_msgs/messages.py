@@ -314,7 +314,7 @@ class RecorderStatus(msgspec.Struct, kw_only=True):
     dropped: int = 0  #: messages dropped by the current recording (disk too slow: its queue was full)
     free_disk_bytes: int = -1
     ok: bool = True  #: False after a recording failure (``error``), until a new recording is open and working
-    error: str = ""
+    error: str = ""  #: why not ``ok`` / not ``recording``, or why ``free_disk_bytes`` is unknown ("" otherwise)
 
 
 class DetectorStatus(msgspec.Struct, kw_only=True):
