@@ -273,6 +273,12 @@ class Recorder:
         with self._lock:
             return {**self._counts, "queued_bytes": self._queued_bytes}
 
+    @property
+    def error(self) -> str:
+        """The writer's failure ("" while it works): set on the writer thread, raised by the next :meth:`record`."""
+        e = self._error
+        return "" if e is None else str(e) or type(e).__name__
+
     def close(self) -> None:
         """Write what is queued, then the summary and footer; fsync and close the file (idempotent)."""
         if self._closed:

@@ -41,6 +41,8 @@ __all__ = [
     "Command",
     "CommandAck",
     "Health",
+    "RecorderStatus",
+    "DetectorStatus",
     "VehicleTruth",
     "SimTruth",
     "MESSAGE_TYPES",
@@ -298,16 +300,53 @@ class CommandAck(Message, tag="command_ack"):
     reason: str = ""
 
 
-class Health(Message, tag="health"):
-    """Heartbeat and health of a process (agent, ground station, simulator)."""
+class RecorderStatus(msgspec.Struct, kw_only=True):
+    """An agent's flight recorder as its health reports it (Health version 2).
 
-    SCHEMA_VERSION: ClassVar[int] = 1
+    ``recording`` False: no recording open (none configured, or a failed one not replaced yet: ``error`` says
+    why). ``free_disk_bytes`` is the free space of the recording folder's file system (``shutil.disk_usage``,
+    refreshed every few seconds; -1: not known)."""
+
+    file: str = ""  #: the current recording's file name ("" when none is open)
+    recording: bool = False
+    bytes_written: int = 0  #: bytes the current recording has written (before compression of the file's chunks)
+    messages_written: int = 0
+    dropped: int = 0  #: messages dropped by the current recording (disk too slow: its queue was full)
+    free_disk_bytes: int = -1
+    ok: bool = True  #: False after a recording failure (``error``), until a new recording is open and working
+    error: str = ""  #: why not ``ok`` / not ``recording``, or why ``free_disk_bytes`` is unknown ("" otherwise)
+
+
+class DetectorStatus(msgspec.Struct, kw_only=True):
+    """The onboard person detector as an agent's health reports it (Health version 2).
+
+    ``required`` False: this drone flies without an onboard detector (orbit mode, simulated keypoints; or
+    track mode with the simulator's detections) and ``model`` says so; True: an ONNX ``model`` is configured and
+    ``loaded`` says whether its session is open."""
+
+    required: bool
+    loaded: bool = False
+    model: str = ""  #: the model's name, or why there is none ("none (orbit mode: simulated keypoints)")
+    rate_hz: float = 0.0  #: detections the detector delivered per second (0 when it has none)
+    error: str = ""
+
+
+class Health(Message, tag="health"):
+    """Heartbeat and health of a process (agent, ground station, simulator).
+
+    Version 2 added ``recorder`` and ``detector`` (agents fill them; version 1, from an older agent, decodes
+    with both None: not reported)."""
+
+    SCHEMA_VERSION: ClassVar[int] = 2
+    READABLE_VERSIONS: ClassVar[tuple[int, ...]] = (1,)
     role: Literal["agent", "ground_station", "simulator", "tool"]
     state: str  #: e.g. agent state machine: "idle", "armed", "takeoff", "orbit", "landing", "landed"
     ok: bool = True
     warnings: list[str] = msgspec.field(default_factory=list)
     cpu_percent: float = 0.0
     rates_hz: dict[str, float] = msgspec.field(default_factory=dict)
+    recorder: RecorderStatus | None = None  #: agents only (version 2); None: not reported
+    detector: DetectorStatus | None = None  #: agents only (version 2); None: not reported
 
 
 class VehicleTruth(msgspec.Struct, kw_only=True):

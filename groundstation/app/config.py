@@ -33,7 +33,12 @@ class ChecklistConfig:
     min_gps_fix_type: int = 3  #: MAVLink GPS_FIX_TYPE: 3 = 3D fix
     max_position_std_m: float = 2.0
     require_camera: bool = True
-    require_detector: bool = False  #: the agents' health does not report a loaded detector in orbit mode
+    #: the recording folder's free space each drone reports (Health v2 ``recorder.free_disk_bytes``) must be at least
+    #: this (GB = 1e9 bytes); a drone that does not report it (an older agent) fails the check
+    min_free_disk_gb: float = 2.0
+    #: the "detector" check passes for a drone that reports an ONNX model loaded, or that it needs none (orbit mode,
+    #: the simulator's detections); True: every drone must run an onboard detector (one that needs none fails)
+    require_detector: bool = False
 
 
 @dataclass

@@ -67,8 +67,13 @@ class DroneRow:
     position_std_m: float | None = None
     setpoint_hz: float = 0.0
     state_hz: float = 0.0
-    recorder: str = "-"
+    recorder: str = "-"  #: the fleet panel's text: file, MB written, dropped, free space (or why none)
     detector: str = "-"
+    #: the agent's recorder (Health v2; None: not reported)
+    recorder_file: str | None = None
+    recorder_mb: float | None = None  #: MB (1e6 bytes) the current recording has written
+    recorder_dropped: int | None = None
+    free_disk_gb: float | None = None  #: the recording folder's free space (GB = 1e9 bytes); None: unknown
     tracker: str = "-"
     warnings: list[str] = field(default_factory=list)
     north_m: float = 0.0
@@ -140,6 +145,72 @@ class CommandRun:
         res = self.results(acks, now_s)
         return ", ".join(f"{d}: {r}{' (' + why + ')' if why and r != 'no answer' else ''}"
                          for d, (r, why) in sorted(res.items()))
+
+
+NOT_REPORTED = "not reported (the agent's health has no {what}: an older agent, update it; or override)"
+
+
+def recorder_text(rs) -> str:
+    """The fleet panel's recorder cell from a Health ``recorder`` (:class:`shared_msgs.RecorderStatus` or None)."""
+    if rs is None:
+        return "not reported"
+    free = f"{rs.free_disk_bytes / 1e9:.1f} GB free" if rs.free_disk_bytes >= 0 else "free space unknown"
+    if not rs.recording:
+        return f"NOT recording ({rs.error or 'no reason given'}), {free}"
+    text = f"{rs.file}, {rs.bytes_written / 1e6:.1f} MB, {rs.dropped} dropped, {free}"
+    return text if rs.ok else f"ERROR {rs.error}; {text}"
+
+
+def detector_text(ds) -> str:
+    """The fleet panel's detector cell from a Health ``detector`` (:class:`shared_msgs.DetectorStatus` or None)."""
+    if ds is None:
+        return "not reported"
+    if not ds.required:
+        return f"not needed: {ds.model}"
+    if ds.loaded:
+        return f"{ds.model} loaded, {ds.rate_hz:.0f} Hz"
+    return f"{ds.model} NOT loaded" + (f": {ds.error}" if ds.error else "")
+
+
+def recorder_space_check(h, min_free_disk_gb: float) -> Check:
+    """The checklist's "recorder space" from a drone's latest Health (None: none received): passes only when the
+    drone records, its recorder reports no error and the recording folder has at least ``min_free_disk_gb``."""
+    name = "recorder space"
+    if h is None:
+        return Check(name, False, "no health received from the agent")
+    rs = h.recorder
+    if rs is None:
+        return Check(name, False, NOT_REPORTED.format(what="recorder status"))
+    need = f"need ≥ {min_free_disk_gb:g} GB"
+    if not rs.ok:
+        return Check(name, False, f"recorder error: {rs.error or 'no reason given'}")
+    if not rs.recording:
+        return Check(name, False, f"not recording: {rs.error or 'no reason given'}")
+    if rs.free_disk_bytes < 0:
+        return Check(name, False, f"free space unknown{': ' + rs.error if rs.error else ' (not measured yet)'} ({need})")
+    free_gb = rs.free_disk_bytes / 1e9
+    detail = f"{free_gb:.1f} GB free ({need}); {rs.file}: {rs.bytes_written / 1e6:.1f} MB, {rs.dropped} dropped"
+    if free_gb < min_free_disk_gb:
+        return Check(name, False, f"too little space: {detail}")
+    return Check(name, True, detail)
+
+
+def detector_check(h, require_detector: bool) -> Check:
+    """The checklist's "detector" from a drone's latest Health: passes when the drone's ONNX model is loaded or it
+    reports needing none (unless ``require_detector``); fails when a model is expected and not loaded."""
+    name = "detector"
+    if h is None:
+        return Check(name, False, "no health received from the agent")
+    ds = h.detector
+    if ds is None:
+        return Check(name, False, NOT_REPORTED.format(what="detector status"))
+    if ds.required:
+        if ds.loaded:
+            return Check(name, True, f"{ds.model} loaded, {ds.rate_hz:.1f} Hz")
+        return Check(name, False, f"{ds.model} expected, NOT loaded" + (f": {ds.error}" if ds.error else ""))
+    if require_detector:
+        return Check(name, False, f"no onboard detector ({ds.model}) but checklist.require_detector is set")
+    return Check(name, True, f"not needed: {ds.model}")
 
 
 class FleetModel:
@@ -285,14 +356,14 @@ class FleetModel:
             r.warnings = list(h.warnings)
             rates = h.rates_hz
             r.setpoint_hz, r.state_hz = rates.get("setpoint", 0.0), rates.get("state", 0.0)
-            # the agent's health gives the camera frames it records, not the recorder's file, size or drops
-            r.recorder = f"{rates.get('frame', 0.0):.0f} Hz"
-            if "detections" in rates:
-                r.detector = f"detections {rates['detections']:.0f} Hz"
-            elif "keypoints" in rates:
-                r.detector = f"keypoints {rates['keypoints']:.0f} Hz"
-            else:
-                r.detector = "not reported"
+            r.recorder = recorder_text(h.recorder)
+            rs = h.recorder
+            if rs is not None:
+                r.recorder_file = rs.file if rs.recording else None
+                r.recorder_mb = rs.bytes_written / 1e6 if rs.recording else None
+                r.recorder_dropped = rs.dropped if rs.recording else None
+                r.free_disk_gb = rs.free_disk_bytes / 1e9 if rs.free_disk_bytes >= 0 else None
+            r.detector = detector_text(h.detector)
             r.ok = r.ok and h.ok
         with self._lock:
             tgt = self.targets.get(d)
@@ -335,11 +406,8 @@ class FleetModel:
         checks.append(Check("camera", cam_ok or not cc.require_camera,
                             f"frames {frame_hz:.1f} Hz{', camera_info received' if has_info else ''}"
                             + ("" if cc.require_camera else " (not required)")))
-        det = h.rates_hz.get("detections") if h else None
-        checks.append(Check("detector", det is not None or not cc.require_detector,
-                            f"{det:.1f} Hz" if det is not None else "not reported by the agent (orbit mode)"
-                            + ("" if cc.require_detector else "; not required")))
-        checks.append(Check("recorder space", True, "not reported by the agent's health: check on the drone"))
+        checks.append(detector_check(h, cc.require_detector))
+        checks.append(recorder_space_check(h, cc.min_free_disk_gb))
         return checks
 
     def checklist_ok(self, d: str) -> bool:

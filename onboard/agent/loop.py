@@ -76,6 +76,7 @@ from shared_msgs import (
     Command,
     CommandAck,
     Detections,
+    DetectorStatus,
     FormationPlan,
     GimbalAttitude,
     Health,
@@ -113,6 +114,10 @@ class Agent:
         self.bus = bus
         self.autopilot = autopilot
         self.outbox = Outbox(cfg.fleet, cfg.drone_id, bus, recorder)
+        if cfg.record.enabled:
+            self.outbox.record_dir = cfg.record.dir  # its free space is reported (health) even with no recording open
+        else:
+            self.outbox.no_recorder_reason = "recording disabled in the agent's configuration (record.enabled = false)"
         self.perception: list[PerceptionStage] = list(perception or [])
         self.mission = Mission()
         self.teammates = Teammates(cfg.drone_id)
@@ -556,7 +561,30 @@ class Agent:
             header=Health.make_header(self.id), role="agent", state=self.mission.state.value,
             ok=not self.warnings and self.autopilot.telemetry.health_ok, warnings=self.warnings[-5:],
             cpu_percent=cpu, rates_hz={k: m.rate_hz() for k, m in self.rates.items()},
+            recorder=self.outbox.recorder_status(), detector=self.detector_status(),
         )
+
+    def detector_status(self) -> DetectorStatus:
+        """The onboard detector as the health reports it: an ONNX model is loaded (its session opened when the
+        agent was built: a model that does not load stops the agent there) only with ``track.detections = "onnx"``;
+        otherwise this drone needs none, and ``model`` says why."""
+        if self.tracking is None:
+            if self.cfg.camera.source == "sim":
+                why = "none (orbit mode: simulated keypoints)"
+            else:
+                why = f"none (orbit mode: {self.cfg.camera.source} camera frames recorded, no onboard detection)"
+            return DetectorStatus(required=False, loaded=False, model=why)
+        w = self.tracking.detector_worker
+        rate = self.tracking.detections_rate.rate_hz()
+        if w is None:
+            return DetectorStatus(required=False, loaded=False, model="none (track mode: the simulator's detections)",
+                                  rate_hz=rate)
+        closed = getattr(w, "_closed", False)
+        failed = int(w.counts.get("failed", 0))
+        error = "the detector's worker is closed" if closed else (f"{failed} frames failed" if failed else "")
+        return DetectorStatus(required=True, loaded=not closed and getattr(w.detector, "session", None) is not None,
+                              model=str(getattr(w.detector, "name", self.cfg.track.detector_model)), rate_hz=rate,
+                              error=error)
 
     # --- life -----------------------------------------------------------------------------------------
     async def start(self) -> None:

@@ -5,20 +5,78 @@ Everything the agent sends or receives is recorded on the recorder channel of it
 the flight: publishing failures are logged; a recording failure is logged, reported (``on_record_failure``:
 the agent's health warnings) and, with ``reopen_recorder``, a new recording (the next sortie file) is opened in
 its place, at most every ``reopen_interval_s`` (a disk that stays full: retried as often, reported once).
+
+:meth:`Outbox.recorder_status` is what the agent's health says of the recording (:class:`shared_msgs.RecorderStatus`):
+the current recorder's file and counters, the last failure, and the free space of the recording folder -- taken
+with ``shutil.disk_usage`` on a background thread at most every ``disk_check_interval_s`` (a slow or hung file
+system never holds up the agent's loop: the last value is reported meanwhile).
 """
 
 from __future__ import annotations
 
 import logging
+import shutil
+import threading
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 from flightdata.recorder import channel_name
-from shared_msgs import Message, encode, keys, stamp_sent
+from shared_msgs import Message, RecorderStatus, encode, keys, stamp_sent
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Outbox"]
+__all__ = ["DiskFree", "Outbox"]
+
+
+class DiskFree:
+    """Free bytes of a folder's file system, measured on a background thread at most every ``interval_s``.
+
+    :meth:`get` never blocks: it returns the last measurement (-1 before the first one, or after a failure:
+    ``error`` says why) and starts a new one when the last is older than ``interval_s``."""
+
+    def __init__(self, interval_s: float = 5.0, disk_usage: Callable[[str], Any] = shutil.disk_usage,
+                 clock: Callable[[], float] = time.monotonic):
+        self.interval_s = interval_s
+        self._disk_usage = disk_usage
+        self._clock = clock
+        self.free_bytes = -1
+        self.error = ""
+        self._path: str | None = None
+        self._t_started_s = -float("inf")
+        self._thread: threading.Thread | None = None
+
+    def get(self, path: str | Path) -> int:
+        path = str(path)
+        now = self._clock()
+        busy = self._thread is not None and self._thread.is_alive()
+        if not busy and (path != self._path or now - self._t_started_s >= self.interval_s):
+            if path != self._path:
+                self.free_bytes, self.error = -1, ""  # another folder: the old value says nothing of it
+            self._path, self._t_started_s = path, now
+            self._thread = threading.Thread(target=self._measure, args=(path,), name="disk-free", daemon=True)
+            self._thread.start()
+        return self.free_bytes
+
+    def wait(self, timeout_s: float = 5.0) -> None:
+        """Wait for the measurement in progress (tests)."""
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def _measure(self, path: str) -> None:
+        t0 = time.perf_counter()
+        try:
+            free = int(self._disk_usage(path).free)
+        except Exception as e:
+            if self.error != str(e):
+                log.warning("free disk space of %s unknown: %s", path, e)
+            self.free_bytes, self.error = -1, f"free space of {path} unknown: {e}"
+            return
+        dt = time.perf_counter() - t0
+        if dt > 0.5:
+            log.warning("measuring the free space of %s took %.1f s (slow file system)", path, dt)
+        if path == self._path:
+            self.free_bytes, self.error = free, ""
 
 
 class Outbox:
@@ -38,6 +96,11 @@ class Outbox:
         self.recorder_failures: list[str] = []
         self._t_next_reopen_s = 0.0
         self._reopen_error = ""
+        #: the recording folder (free space reported even while no recording is open); None: the recorder's folder
+        self.record_dir: str | Path | None = None
+        #: why nothing is recorded when no recorder was ever given (e.g. recording disabled in the config)
+        self.no_recorder_reason = "no recorder configured"
+        self.disk_free = DiskFree()
 
     def key(self, topic: str) -> str:
         """This drone's key of ``topic``."""
@@ -102,3 +165,30 @@ class Outbox:
             log.warning("%s: publish on %s failed: %s", self.drone_id, key, e)
             data = encode(stamp_sent(msg))
         self.record(key, data)
+
+    def recorder_status(self) -> RecorderStatus:
+        """The recording as the agent's health reports it (never blocks: see :class:`DiskFree`)."""
+        rec = None if self._record_failed else self.recorder
+        folder = self.record_dir
+        if folder is None and self.recorder is not None and getattr(self.recorder, "path", None) is not None:
+            folder = Path(self.recorder.path).parent
+        free = self.disk_free.get(folder) if folder is not None else -1
+        if rec is None:
+            if self.recorder_failures or self._reopen_error:
+                error = self._reopen_error and f"cannot open a new recording: {self._reopen_error}"
+                error = error or self.recorder_failures[-1]
+                return RecorderStatus(recording=False, free_disk_bytes=free, ok=False, error=error)
+            return RecorderStatus(recording=False, free_disk_bytes=free, ok=True, error=self.no_recorder_reason)
+        try:
+            st = rec.stats()
+        except Exception as e:  # a recorder that cannot even count: reported, never raised into the health loop
+            log.warning("%s: recorder statistics unavailable: %s", self.drone_id, e)
+            st = {}
+        error = str(getattr(rec, "error", "") or "")  # the writer failed; the next record() will notice
+        path = getattr(rec, "path", None)
+        return RecorderStatus(
+            file=Path(path).name if path is not None else "", recording=True,
+            bytes_written=int(st.get("bytes", 0)), messages_written=int(st.get("written", 0)),
+            dropped=int(st.get("dropped", 0)), free_disk_bytes=free, ok=not error,
+            error=f"recording to {path} failed: {error}" if error else self.disk_free.error,
+        )

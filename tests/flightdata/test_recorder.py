@@ -230,7 +230,9 @@ def test_injected_writer_failure_surfaces_and_keeps_the_flushed_part(tmp_path) -
     for i in range(20):
         rec.record_message("state", state(i, t0 + i))
     time.sleep(0.3)
+    assert rec.error == ""
     rec.inject_writer_failure("test: writer killed")
     e = _wait_error(rec)
+    assert "test: writer killed" in rec.error  # what the agent's health reports before the next record() raises
     assert "test: writer killed" in str(e)
     assert len(read_topic(tmp_path / "k.mcap", "state")) >= 20

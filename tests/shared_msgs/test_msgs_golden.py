@@ -85,3 +85,20 @@ def test_sim_truth_version_1_decodes_as_version_2() -> None:
     assert msg.header.schema_version == SimTruth.SCHEMA_VERSION == 2
     v, ex = msg.vehicles[0], EXAMPLES["sim_truth"].vehicles[0]
     assert v.gimbal_yaw_rad == 0.0 and v.gimbal_pitch_rad == ex.gimbal_pitch_rad and v.position_ned_m == ex.position_ned_m
+
+
+def test_health_version_1_decodes_as_version_2_with_recorder_and_detector_not_reported() -> None:
+    """Health version 1 (an older agent: before ``recorder`` and ``detector``) decodes with both None, which the
+    ground station shows as "not reported"; version 2 round-trips its nested statuses."""
+    from shared_msgs import DetectorStatus, Health, RecorderStatus
+
+    old = (GOLDEN_DIR / "older" / "health.v1.msgpack").read_bytes()
+    assert msgspec.msgpack.decode(old)["header"]["schema_version"] == 1
+    msg = decode(old, Health)
+    assert msg.header.schema_version == Health.SCHEMA_VERSION == 2
+    assert msg.recorder is None and msg.detector is None
+    ex = EXAMPLES["health"]
+    assert msg.state == ex.state and msg.warnings == ex.warnings and msg.rates_hz == ex.rates_hz
+    v2 = decode(encode(ex), Health)
+    assert isinstance(v2.recorder, RecorderStatus) and v2.recorder.free_disk_bytes == 8_589_934_592
+    assert isinstance(v2.detector, DetectorStatus) and v2.detector.loaded and v2.detector.model == "yolox_s_person.onnx"

@@ -15,7 +15,7 @@ from flightdata.recorder import channel_name
 from groundstation.fleet import make_orbit_plan
 from onboard.agent import Agent
 from onboard.agent.failsafes import FormationFailsafes
-from onboard.agent.outbox import Outbox
+from onboard.agent.outbox import DiskFree, Outbox
 from onboard.agent.teammates import Teammates
 from onboard.agent.telemetry import Telemetry
 from onboard.agent.tracking import TrackingCapture
@@ -24,7 +24,7 @@ from onboard.formation.failsafe import FailsafeLog
 from onboard.formation.source import FormationSource
 from onboard.orbit import OrbitController
 from onboard.setpoint import HoldSource
-from shared_msgs import Health, VehicleState, encode, keys
+from shared_msgs import Health, VehicleState, decode, encode, keys
 
 
 class FakeBus:
@@ -106,6 +106,128 @@ def test_outbox_replaces_a_failed_recorder_and_reports_it():
     time.sleep(0.06)
     out.record(out.key(keys.STATE), b"d")
     assert out.recorder is not None and out.recorder.records[-1][1] == b"d"
+
+
+class StatsRecorder(FakeRecorder):
+    """A recorder with the real one's reporting surface: ``path``, ``stats()``, ``error``."""
+
+    def __init__(self, path, fail: bool = False):
+        super().__init__(fail)
+        self.path = path
+        self.error = ""
+
+    def record(self, channel, data, log_time_ns=None):
+        super().record(channel, data, log_time_ns)
+
+    def stats(self):
+        return {"written": len(self.records), "bytes": sum(len(r[1]) for r in self.records), "dropped": 3,
+                "invalid": 0, "flushes": 1, "queued_bytes": 0}
+
+    def close(self):
+        pass
+
+
+class FakeUsage:
+    def __init__(self, free: int, delay_s: float = 0.0, fail: str = ""):
+        self.free_bytes, self.delay_s, self.fail, self.calls = free, delay_s, fail, []
+
+    def __call__(self, path):
+        self.calls.append(path)
+        time.sleep(self.delay_s)
+        if self.fail:
+            raise OSError(self.fail)
+        return type("Usage", (), {"free": self.free_bytes, "total": 10 * self.free_bytes, "used": 0})()
+
+
+def _health_roundtrip(agent: Agent) -> Health:
+    return decode(encode(agent.health()), Health)  # what the ground station gets: valid on the wire
+
+
+def test_health_reports_the_recording_its_counters_and_the_record_folders_free_space(tmp_path):
+    cfg = AgentConfig(drone_id="drone_1", fleet="f")
+    cfg.record.dir = str(tmp_path)
+    rec = StatsRecorder(tmp_path / "sortie-002_drone_1.mcap")
+    agent = Agent(cfg, FakeBus(), FakeAutopilot(), rec)
+    usage = FakeUsage(free=7 * 2**30, delay_s=0.2)
+    agent.outbox.disk_free = DiskFree(interval_s=60.0, disk_usage=usage)
+    agent.outbox.record(agent.outbox.key(keys.STATE), b"12345")
+    agent.outbox.record(agent.outbox.key(keys.STATE), b"678")
+    first = _health_roundtrip(agent).recorder
+    assert first.free_disk_bytes == -1  # measured in the background: not known yet, never waited for
+    agent.outbox.disk_free.wait()
+    r = _health_roundtrip(agent).recorder
+    assert (r.file, r.recording, r.ok, r.error) == ("sortie-002_drone_1.mcap", True, True, "")
+    assert (r.messages_written, r.bytes_written, r.dropped) == (2, 8, 3)
+    assert r.free_disk_bytes == 7 * 2**30 and usage.calls == [str(tmp_path)]
+    for _ in range(5):
+        agent.health()
+    assert len(usage.calls) == 1  # at most every interval_s
+    rec.error = "I/O error"  # the writer thread died: reported before the next record() notices
+    r = agent.health().recorder
+    assert not r.ok and "I/O error" in r.error and r.recording
+
+
+def test_health_reports_a_failed_recorder_and_a_recording_that_cannot_be_reopened(tmp_path):
+    cfg = AgentConfig(drone_id="drone_1", fleet="f")
+    cfg.record.dir = str(tmp_path)
+    agent = Agent(cfg, FakeBus(), FakeAutopilot(), StatsRecorder(tmp_path / "a.mcap", fail=True))
+    agent.outbox.disk_free = DiskFree(disk_usage=FakeUsage(free=10**9))
+    agent.outbox.record(agent.outbox.key(keys.STATE), b"x")  # fails; no reopen configured
+    r = _health_roundtrip(agent).recorder
+    assert not r.recording and not r.ok and "disk full" in r.error and r.file == ""
+    agent.outbox.reopen_recorder = lambda: (_ for _ in ()).throw(OSError("No space left on device"))
+    agent.outbox.reopen_interval_s = 0.0
+    agent.outbox.record(agent.outbox.key(keys.STATE), b"y")
+    r = agent.health().recorder
+    assert not r.ok and r.error.startswith("cannot open a new recording") and "No space left" in r.error
+    agent.outbox.disk_free.wait()
+    assert agent.health().recorder.free_disk_bytes == 10**9  # the folder's space is still reported
+
+
+def test_health_says_why_nothing_is_recorded_when_recording_is_disabled():
+    cfg = AgentConfig(drone_id="drone_1", fleet="f")
+    cfg.record.enabled = False
+    r = Agent(cfg, FakeBus(), FakeAutopilot()).health().recorder
+    assert not r.recording and r.free_disk_bytes == -1 and "record.enabled = false" in r.error
+
+
+def test_disk_free_never_blocks_and_reports_a_failure():
+    slow = DiskFree(disk_usage=FakeUsage(free=5, delay_s=0.3))
+    t0 = time.perf_counter()
+    assert slow.get("/x") == -1
+    assert time.perf_counter() - t0 < 0.1
+    slow.wait()
+    assert slow.get("/x") == 5
+    bad = DiskFree(disk_usage=FakeUsage(free=5, fail="stale file handle"))
+    bad.get("/y")
+    bad.wait()
+    assert bad.get("/y") == -1 and "stale file handle" in bad.error
+
+
+class FakeDetectorWorker:
+    def __init__(self, name: str):
+        self.detector = type("Det", (), {"name": name, "session": object()})()
+        self.counts = {"submitted": 0, "dropped_busy": 0, "failed": 0, "done": 0}
+        self._closed = False
+
+    def close(self, wait: bool = True):
+        self._closed = True
+
+
+def test_health_reports_the_onboard_detector_or_why_there_is_none():
+    orbit = Agent(AgentConfig(drone_id="drone_1", fleet="f"), FakeBus(), FakeAutopilot())
+    d = _health_roundtrip(orbit).detector
+    assert (d.required, d.loaded, d.model) == (False, False, "none (orbit mode: simulated keypoints)")
+    track = Agent(AgentConfig(drone_id="drone_1", fleet="f", mode="track"), FakeBus(), FakeAutopilot())
+    d = _health_roundtrip(track).detector
+    assert not d.required and not d.loaded and "simulator's detections" in d.model
+    track.tracking.detector_worker = FakeDetectorWorker("nanodet")  # track.detections = "onnx": a model loaded
+    d = _health_roundtrip(track).detector
+    assert (d.required, d.loaded, d.model, d.error) == (True, True, "nanodet", "")
+    track.tracking.detector_worker.counts["failed"] = 2
+    track.tracking.detector_worker.close()
+    d = track.health().detector
+    assert d.required and not d.loaded and "closed" in d.error
 
 
 # --- teammates -------------------------------------------------------------------------------------------
