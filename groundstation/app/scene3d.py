@@ -27,7 +27,6 @@ from PySide6.QtGui import QColor, QPainter, QPen
 from PySide6.QtWidgets import QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayout, QWidget
 
 from groundstation.app import view3d
-from groundstation.app.qtfix import NONE_GUARD
 from skycap.skeleton import COCO17_LIMBS, COCO17_NAMES
 
 log = logging.getLogger(__name__)
@@ -88,7 +87,7 @@ class Scene3DView(QWidget):
             return 0
         uv = self.to_px(np.asarray(segs_ned, dtype=float).reshape(-1, 3)).reshape(-1, 4)
         uv = uv[np.all(np.isfinite(uv), axis=1)]
-        if len(uv):  # one Qt call for all of them (each Qt call costs; see qtfix)
+        if len(uv):  # one Qt call for all of them (each Qt call costs)
             p.drawLines([QLineF(*map(float, s)) for s in uv])
         return len(uv)
 
@@ -122,7 +121,6 @@ class Scene3DView(QWidget):
         if np.all(np.isfinite(tip)):
             p.drawText(QPointF(tip[0], tip[1]), "N")
         self.draw_scene(p)
-        NONE_GUARD.check()
         p.setPen(QColor(90, 90, 90))
         p.drawText(8, self.height() - 8, f"grid {self.grid_step_m:g} m  |  drag: turn, wheel: zoom  |  "
                    f"az {math.degrees(self.azimuth_rad) % 360:.0f} deg, el {math.degrees(self.elevation_rad):.0f} deg, "

@@ -24,7 +24,6 @@ from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QFormLayout, QGridL
 from groundstation.app.config import GsConfig
 from groundstation.app.jobs import JobError, ReconstructJob, list_flights
 from groundstation.app.model import ACTIONS, CommandRun, FleetModel, PlanForm
-from groundstation.app.qtfix import NONE_GUARD
 from groundstation.app.scene3d import Live3DView, SkeletonPlayer
 
 log = logging.getLogger(__name__)
@@ -223,7 +222,6 @@ class MapView(QWidget):
             p.drawText(pos + QPointF(10, -8), f"{r.drone} {r.altitude_m:.1f} m"
                        + (f" ({r.age_s:.0f} s old)" if r.stale else ""))
         p.end()
-        NONE_GUARD.check()
 
     def _footprint(self, r) -> list[tuple[float, float]] | None:
         alt = r.altitude_m
@@ -336,9 +334,6 @@ class MainWindow(QMainWindow):
         self.thumb_timer = QTimer(self)
         self.thumb_timer.timeout.connect(self.thumbs.refresh)
         self.thumb_timer.start(int(1000 / cfg.ui.thumbs_hz))
-        self.none_guard_timer = QTimer(self)  # PySide6 drops references to None: give them back (see qtfix)
-        self.none_guard_timer.timeout.connect(NONE_GUARD.check)
-        self.none_guard_timer.start(1000)
         self.refresh()
         self.refresh_flights()
 

@@ -51,8 +51,11 @@ def test_drones_landed_by_another_client_the_demo_still_summarises_and_reconstru
     assert demo.returncode == 0, stdout[-5000:]
     s = json.loads((out / "summary.json").read_text())
     for d in ("drone_1", "drone_2"):
-        assert s["drones"][d]["ended"].startswith("on the ground before the final land command"), s["drones"][d]
+        # down, or still descending under the other client's land when the demo's orbit ended (a loaded machine)
+        ended = s["drones"][d]["ended"]
+        assert ended.startswith(("on the ground before the final land command", "landing before the final land command")) \
+            and "another client's command" in ended, s["drones"][d]
     assert "refused: not airborne" not in stdout
     r = s["reconstruction"]
     assert r["ran"] and r["exit_code"] == 0, (r, (out / "logs" / "reconstruct.log").read_text()[-3000:])
-    assert "landed by a failsafe or another client's command" in stdout
+    assert "another client's command" in stdout

@@ -229,25 +229,20 @@ def test_live_3d_view_draws_every_drone_of_the_model(qtbot, tmp_path):
     model.close()
 
 
-def test_none_refcount_guard_gives_back_what_qt_calls_drop(qapp):
-    """PySide6 6.12 on Python 3.11 drops a reference to None per void Qt call (the bench aborted with
-    'deallocating None'); the guard restores the count to its floor."""
+def test_the_qt_binding_keeps_its_references_to_none(qapp):
+    """PySide6-Essentials 6.12.0 on Python 3.11 drops a reference to None per void Qt call (the ground-station bench
+    aborted with 'Fatal Python error: none_dealloc: deallocating None' after a minute of painting; 6.11.3 does
+    not). pyproject.toml excludes that release; this fails on a binding with the bug."""
     import sys
 
     from PySide6.QtCore import QPointF
     from PySide6.QtGui import QImage, QPainter
 
-    from groundstation.app.qtfix import NoneRefGuard
-
-    guard = NoneRefGuard()
-    if not guard.active:
-        pytest.skip("None is immortal on Python >= 3.12")
     img = QImage(50, 50, QImage.Format_ARGB32)
     p = QPainter(img)
+    before = sys.getrefcount(None)
     for _ in range(3000):
         p.drawLine(QPointF(1, 2), QPointF(3, 4))
+    after = sys.getrefcount(None)
     p.end()
-    if sys.getrefcount(None) >= guard.floor:
-        pytest.skip("this PySide6 drops no reference to None")
-    assert guard.check() > 2000
-    assert sys.getrefcount(None) >= guard.floor
+    assert after > before - 100, f"this PySide6 dropped {before - after} references to None in 3000 drawLine calls"
