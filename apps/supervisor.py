@@ -9,6 +9,7 @@ import subprocess
 import time
 from pathlib import Path
 
+from skycap.childproc import die_with_parent
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
@@ -26,7 +27,8 @@ class ProcessSupervisor:
     def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
         f = open(self.log_dir / f"{name}.log", "w")
         log.info("starting %s: %s", name, " ".join(cmd))
-        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
+                                 preexec_fn=die_with_parent)  # never outlive this launcher
         self.items.append((name, p))
         return p
 

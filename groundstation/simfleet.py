@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from comms.security import FleetKeys
+from skycap.childproc import die_with_parent
 from flightdata.folder import FlightFolder
 from onboard.orbit import evenly_spaced_phases
 from skycap.errors import SkycapError
@@ -73,7 +74,8 @@ class SimProcesses:
     def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
         with open(self.log_dir / f"{name}.log", "w") as f:
             log.info("starting %s: %s", name, " ".join(cmd))
-            p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+            p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
+                                 preexec_fn=die_with_parent)  # never outlive this launcher
         self.items.append((name, p))
         return p
 
