@@ -312,7 +312,7 @@ class ThumbGrid(QWidget):
 class MainWindow(QMainWindow):
     """The ground station window over ``model``; ``flights_dir``: where recorded flights are listed from."""
 
-    COLUMNS = ["drone", "link", "state", "mode", "armed", "battery", "GPS", "pos ±m", "setpt Hz", "rec. frames",
+    COLUMNS = ["drone", "link", "state", "mode", "armed", "battery", "GPS", "pos ±m", "setpt Hz", "recorder",
                "detector", "tracker", "warnings"]
 
     def __init__(self, model: FleetModel, cfg: GsConfig, title: str = "skycap ground station"):
