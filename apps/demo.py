@@ -82,7 +82,6 @@ from pathlib import Path
 
 import msgspec
 
-from apps.supervisor import ProcessSupervisor
 from comms.faults import MalformedDetectionsInjector, MalformedFloodInjector
 from comms.outsider import OutsiderProbe
 from comms.security import FleetKeys
@@ -94,6 +93,7 @@ from flightdata.recorder import Recorder
 from groundstation.fleet import FleetClient, make_orbit_plan
 from onboard.orbit import evenly_spaced_phases
 from shared_msgs import SimTruth, keys
+from skycap.childproc import ProcessSupervisor
 from skycap.config import ConfigError, add_config_args, config_from_args, save_config
 from skycap.errors import SkycapError
 

@@ -31,13 +31,13 @@ import argparse
 import dataclasses
 import json
 import logging
-import socket
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from apps.demo import DemoConfig
+from skycap.ports import free_tcp_port, free_udp_base
 from skycap.config import ConfigError, add_config_args, config_from_args, load_config, save_config
 from skycap.errors import SkycapError
 
@@ -182,32 +182,6 @@ def _load(args: argparse.Namespace) -> FaultsConfig:
 
 
 # ------------------------------------------------------------------------------------------ running
-def _free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _free_udp_base(n: int) -> int:
-    import random
-
-    for _ in range(200):
-        base = random.randint(30000, 60000 - n)
-        socks = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                s.bind(("0.0.0.0", base + i))
-                socks.append(s)
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise SkycapError(f"no {n} consecutive free UDP ports in 30000..60000 for the MAVLink links")
-
-
 def _expand(text: str, ids: list[str]) -> str:
     return text.replace("{d1}", ids[0]).replace("{dlast}", ids[-1])
 
@@ -219,8 +193,8 @@ def scenario_demo_config(cfg: FaultsConfig, sc: Scenario, out: Path):
     ids = [f"drone_{i + 1}" for i in range(cfg.demo.drones)]
     base = dataclasses.replace(cfg.demo, out=str(out), fleet=f"{cfg.demo.fleet}-{sc.name}".replace("_", "-"))
     if cfg.free_ports:
-        base = dataclasses.replace(base, zenoh_endpoint=f"tcp/127.0.0.1:{_free_tcp_port()}",
-                                   mavlink_base=_free_udp_base(base.drones))
+        base = dataclasses.replace(base, zenoh_endpoint=f"tcp/127.0.0.1:{free_tcp_port()}",
+                                   mavlink_base=free_udp_base(base.drones))
     with tempfile.TemporaryDirectory() as tmp:  # the base as a file, the scenario's overrides on top of it
         path = save_config(base, Path(tmp) / "base.toml")
         return load_config(DemoConfig, path, overrides=[_expand(s, ids) for s in sc.sets]).validate()

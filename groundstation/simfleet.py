@@ -2,8 +2,8 @@
 
 NOTE: this repeats the process launching of :func:`apps.demo.run_demo` (same commands and ``--set`` options:
 ``skycap sim``, ``python -m simulator.scene.node``, ``skycap agent``), because the ground station sits below
-``apps`` in the import layers and cannot import it (nor :class:`apps.supervisor.ProcessSupervisor`, which
-:class:`SimProcesses` mirrors). The two should be unified (e.g. move the launcher into a lower layer).
+``apps`` in the import layers and cannot import it. The process supervision (:class:`skycap.childproc.ProcessSupervisor`)
+and the free ports (:mod:`skycap.ports`) are shared; the launch commands should move into a lower layer too.
 
     fleet = SimFleet.prepare(n=2, out="flights/gs-...")   # temporary CA, free endpoint and ports
     bus = Transport.open(TransportConfig.rendezvous(fleet.endpoint, fleet.keys_dir), "gs", identity="gcs")
@@ -16,87 +16,22 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import shutil
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from comms.security import FleetKeys
-from skycap.childproc import die_with_parent
+from skycap.childproc import ProcessSupervisor
+from skycap.ports import free_tcp_port, free_udp_base
 from flightdata.folder import FlightFolder
 from onboard.orbit import evenly_spaced_phases
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SimFleet", "SimProcesses", "free_tcp_port", "free_udp_base"]
-
-
-def free_tcp_port(host: str = "127.0.0.1") -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
-def free_udp_base(n: int, lo: int = 30000, hi: int = 60000) -> int:
-    import random
-
-    for _ in range(200):
-        base = random.randint(lo, hi - n)
-        socks = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                s.bind(("0.0.0.0", base + i))
-                socks.append(s)
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise SkycapError(f"no {n} consecutive free UDP ports in {lo}..{hi}")
-
-
-class SimProcesses:
-    """Child processes, each in its own process group with its own log (mirrors apps.supervisor.ProcessSupervisor)."""
-
-    def __init__(self, log_dir: Path):
-        self.log_dir = log_dir
-        self.items: list[tuple[str, subprocess.Popen]] = []
-
-    def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
-        with open(self.log_dir / f"{name}.log", "w") as f:
-            log.info("starting %s: %s", name, " ".join(cmd))
-            p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
-                                 preexec_fn=die_with_parent)  # never outlive this launcher
-        self.items.append((name, p))
-        return p
-
-    def dead(self) -> dict[str, int]:
-        return {n: p.returncode for n, p in self.items if p.poll() is not None}
-
-    def stop(self, names: list[str] | None = None, timeout_s: float = 20.0) -> dict[str, int]:
-        chosen = [(n, p) for n, p in self.items if names is None or n in names]
-        for _, p in chosen:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        codes = {}
-        t_end = time.monotonic() + timeout_s
-        for n, p in chosen:
-            try:
-                codes[n] = p.wait(max(0.1, t_end - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.error("%s did not stop within %.0f s: killing it", n, timeout_s)
-                os.killpg(p.pid, signal.SIGKILL)
-                codes[n] = p.wait()
-        return codes
+__all__ = ["SimFleet"]
 
 
 @dataclass
@@ -113,7 +48,7 @@ class SimFleet:
     altitude_m: float = 6.0
     cameras: bool = True
     sim_set: list[str] = field(default_factory=list)
-    _procs: SimProcesses | None = None
+    _procs: ProcessSupervisor | None = None
     _temp_keys: Path | None = None
 
     @classmethod
@@ -149,7 +84,7 @@ class SimFleet:
         """Start the simulator, the camera nodes and the agents (they join the rendezvous the app opened)."""
         flight = FlightFolder(self.out)
         flight.logs_dir.mkdir(parents=True, exist_ok=True)
-        self._procs = SimProcesses(flight.logs_dir)
+        self._procs = ProcessSupervisor(flight.logs_dir)
         py = [sys.executable, "-m", "apps.cli"]
         base = free_udp_base(len(self.ids))
         spawn = ", ".join(f"[{n}, {e}]" for n, e in self.spawn_ne_m())
