@@ -131,7 +131,33 @@ class FaultInjector:
             self._cond.notify_all()
 
 
-class MalformedDetectionsInjector:
+class _CyclingInjector:
+    """Publishes ``message(kind, t_ns)`` (subclasses: ``KINDS`` and ``message``) at ``rate_hz`` via
+    ``bus.publish_raw``, cycling through the kinds and counting what went out."""
+
+    KINDS: tuple[str, ...] = ()
+
+    def __init__(self, bus, fleet: str, ids: list[str], rate_hz: float):
+        self.bus, self.fleet, self.ids, self.period_s = bus, fleet, ids, 1.0 / rate_hz
+        self.t_next = 0.0
+        self.n = 0
+        self.counts = {k: 0 for k in self.KINDS}
+
+    def tick(self, now_s: float) -> None:
+        if now_s < self.t_next:
+            return
+        self.t_next = now_s + self.period_s
+        kind = self.KINDS[self.n % len(self.KINDS)]
+        key, data = self.message(kind, int(now_s * 1e9))
+        try:
+            self.bus.publish_raw(key, data)
+            self.counts[kind] += 1
+        except Exception as e:
+            log.warning("%s injection failed: %s", type(self).__name__, e)
+        self.n += 1
+
+
+class MalformedDetectionsInjector(_CyclingInjector):
     """Publishes malformed detections at ``rate_hz`` (fault injection), cycling through four kinds:
 
     0. a NaN box on the first drone's own detector key (``<d1>/sim/detections``): refused by the codec on receipt;
@@ -144,12 +170,6 @@ class MalformedDetectionsInjector:
     """
 
     KINDS = ("nan_box", "inverted_box", "non_rigid_pose", "nan_pose")
-
-    def __init__(self, bus, fleet: str, ids: list[str], rate_hz: float):
-        self.bus, self.fleet, self.ids, self.period_s = bus, fleet, ids, 1.0 / rate_hz
-        self.t_next = 0.0
-        self.n = 0
-        self.counts = {k: 0 for k in self.KINDS}
 
     def message(self, kind: str, t_ns: int):
         own, mate = self.ids[0], self.ids[1] if len(self.ids) > 1 else self.ids[0]
@@ -171,21 +191,9 @@ class MalformedDetectionsInjector:
                          boxes=[BoundingBox(**box)], width_px=960, height_px=540, T_world_cam=tuple(T))
         return key, encode(stamp_sent(msg))  # raw bytes: the sender-side validation is bypassed on purpose
 
-    def tick(self, now_s: float) -> None:
-        if now_s < self.t_next:
-            return
-        self.t_next = now_s + self.period_s
-        kind = self.KINDS[self.n % len(self.KINDS)]
-        key, data = self.message(kind, int(now_s * 1e9))
-        try:
-            self.bus.publish_raw(key, data)
-            self.counts[kind] += 1
-        except Exception as e:
-            log.warning("malformed-detection injection failed: %s", e)
-        self.n += 1
 
 
-class MalformedFloodInjector:
+class MalformedFloodInjector(_CyclingInjector):
     """A flood of malformed messages on the keys every agent listens to, also in orbit mode (fault injection),
     at ``rate_hz``, cycling through:
 
@@ -201,10 +209,7 @@ class MalformedFloodInjector:
     KINDS = ("nan_state", "garbage_state", "nan_command", "garbage_command")
 
     def __init__(self, bus, fleet: str, ids: list[str], rate_hz: float):
-        self.bus, self.fleet, self.ids, self.period_s = bus, fleet, ids, 1.0 / rate_hz
-        self.t_next = 0.0
-        self.n = 0
-        self.counts = {k: 0 for k in self.KINDS}
+        super().__init__(bus, fleet, ids, rate_hz)
         self._rng = random.Random(1)
 
     def message(self, kind: str, t_ns: int) -> tuple[str, bytes]:
@@ -225,15 +230,3 @@ class MalformedFloodInjector:
                           action="takeoff", params={"altitude_m": float("nan")})
         return key, encode(stamp_sent(msg))  # raw bytes: the sender-side validation is bypassed on purpose
 
-    def tick(self, now_s: float) -> None:
-        if now_s < self.t_next:
-            return
-        self.t_next = now_s + self.period_s
-        kind = self.KINDS[self.n % len(self.KINDS)]
-        key, data = self.message(kind, int(now_s * 1e9))
-        try:
-            self.bus.publish_raw(key, data)
-            self.counts[kind] += 1
-        except Exception as e:
-            log.warning("malformed-message injection failed: %s", e)
-        self.n += 1
