@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -508,8 +509,8 @@ class FleetModel:
                                    form.altitude_m, 0.0 if track else form.speed_m_s / form.radius_m,
                                    form.direction, min_separation_m=form.min_separation_m, mode=form.mode,
                                    geofence=self.geofence_zone(), keepout_zones=self.keepout_zones())
-        except FleetError as e:
-            return None, str(e)
+        except FleetError as e:  # the agents' own rules; the form shows "NOT SENT" already, without the plan's id
+            return None, re.sub(r"^plan \S+ not sent: ", "", str(e))
         return plan, ""
 
     def send_plan(self, form: PlanForm) -> tuple[CommandRun | None, str]:

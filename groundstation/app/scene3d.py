@@ -453,7 +453,7 @@ class Live3DView(Scene3DView):
         cn, ce = plan.center_ned_m[0], plan.center_ned_m[1]
         zones = max((math.hypot(z.north_m - cn, z.east_m - ce) + z.radius_m for z in self.cfg.keepout_zones),
                     default=0.0)
-        self.distance_m = max(10.0, 3.8 * plan.radius_m, 2.4 * zones)
+        self.distance_m = max(10.0, 3.8 * plan.radius_m, 2.8 * zones)
 
     def set_live_skeleton(self, joints_ned) -> None:
         """Draw a (17, 3) NED skeleton (COCO-17, metres); None removes it. The feed is
@@ -487,7 +487,7 @@ class Live3DView(Scene3DView):
                 a = k * math.pi / 3
                 n, e = z.north_m + z.radius_m * math.cos(a), z.east_m + z.radius_m * math.sin(a)
                 self._segments(p, np.array([[[n, e, 0.0], [n, e, -g.max_altitude_m]]]))
-            uv = self.to_px([[z.north_m, z.east_m, -g.max_altitude_m / 2]])[0]
+            uv = self.to_px([[z.north_m, z.east_m, 0.0]])[0]  # its foot
             if np.all(np.isfinite(uv)) and 0 <= uv[0] <= self.width() and 0 <= uv[1] <= self.height():
                 drawn["zones"] += 1  # counted only when in view
             self._label(p, [z.north_m, z.east_m, -g.max_altitude_m - 0.5], f"keep-out: {z.name or i + 1}")
