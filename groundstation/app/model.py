@@ -257,7 +257,9 @@ class FleetModel:
         self.live_skeleton_ned = None
         self.events: list[Event] = []
         self.runs: list[CommandRun] = []
-        self.plan: OrbitPlan | None = None
+        self.plan: OrbitPlan | None = None  #: the plan shown (the last sent, until every drone refused it)
+        self._plan_before: OrbitPlan | None = None
+        self._plan_run: CommandRun | None = None
         self.overrides: dict[str, str] = {}  #: drone -> why the operator overrode its failing checklist
         self._seen: dict[str, dict] = {}  #: per drone: what was already alerted (edge-triggered alerts)
         self._acks_seen = 0
@@ -345,6 +347,22 @@ class FleetModel:
                 for d, (res, why) in run.results(acks, now).items():
                     if res == "no answer":
                         self.log_event("alert", d, f"NO ANSWER to {run.action} within {run.timeout_s:.0f} s")
+        self._check_plan_refused(acks, now)
+
+    def _plan_accepted(self, run: CommandRun) -> bool:
+        return any(r == "accepted" for r, _ in run.results(list(self.client.acks), self.clock()).values())
+
+    def _check_plan_refused(self, acks, now: float) -> None:
+        """Every drone answered the last plan and none accepted it: the map shows the plan before it again."""
+        run = self._plan_run
+        if run is None or self.plan is None or not run.done(acks, now) or getattr(run, "_refusal_seen", False):
+            return
+        run._refusal_seen = True  # type: ignore[attr-defined]
+        if not any(r == "accepted" for r, _ in run.results(acks, now).values()):
+            refused = self.plan
+            self.plan = self._plan_before
+            self.log_event("alert", "", f"plan {refused.plan_id} accepted by no drone: not shown on the map"
+                           + (f"; the map shows plan {self.plan.plan_id} again" if self.plan else ""))
 
     # --- views ------------------------------------------------------------------------------------
     def drone_ids(self) -> list[str]:
@@ -519,10 +537,13 @@ class FleetModel:
             self.log_event("warning", "", f"plan not sent: {why}")
             return None, why
         self.client.send_plan(plan)
+        if self.plan is not None and self._plan_run is not None and self._plan_accepted(self._plan_run):
+            self._plan_before = self.plan  # the plan some drone flies: shown again if every drone refuses this one
         self.plan = plan
         run = CommandRun("plan", list(form.drones), {d: plan.plan_id for d in form.drones}, self.clock(),
                          self.cfg.ui.command_timeout_s)
         self.runs.append(run)
+        self._plan_run = run
         what = (f"tracking formation, start guess ({form.center_north_m:g}, {form.center_east_m:g}) m, stand-off "
                 f"{plan.radius_m:g} m" if form.mode == "track" else
                 f"orbit, radius {plan.radius_m:g} m, {form.speed_m_s:g} m/s")

@@ -490,7 +490,7 @@ class Live3DView(Scene3DView):
             uv = self.to_px([[z.north_m, z.east_m, 0.0]])[0]  # its foot
             if np.all(np.isfinite(uv)) and 0 <= uv[0] <= self.width() and 0 <= uv[1] <= self.height():
                 drawn["zones"] += 1  # counted only when in view
-            self._label(p, [z.north_m, z.east_m, -g.max_altitude_m - 0.5], f"keep-out: {z.name or i + 1}")
+            self._label(p, [z.north_m - z.radius_m, z.east_m, 0.0], f"keep-out: {z.name or i + 1}")
         plan = m.plan
         if plan is not None:
             cn, ce = plan.center_ned_m[0], plan.center_ned_m[1]
@@ -509,12 +509,14 @@ class Live3DView(Scene3DView):
             if self._segments(p, np.array([[[r[0], r[1], 0.0], [r[0], r[1], -1.7]]])):
                 drawn["persons"] += 1
                 self._label(p, [r[0], r[1], -1.8], "person (sim truth)")
+        shown = m.person_estimate()
         for d, t in list(m.targets.items()):
             pos = t.position_ned_m
             p.setPen(QPen(QColor(160, 0, 160), 3))
             if self._segments(p, np.array([[[pos[0], pos[1], 0.0], [pos[0], pos[1], -1.7]]])):
                 drawn["persons"] += 1
-                self._label(p, [pos[0], pos[1], -1.9], f"person est. ({d}, {t.status})")
+                if t is shown:  # one label: the drones' estimates overlap
+                    self._label(p, [pos[0], pos[1], -1.9], f"person est. ({d}, {t.status}; {len(m.targets)} drone(s))")
         if self.live_skeleton_ned is not None:
             drawn["skeleton_bones"] = self._skeleton(p, self.live_skeleton_ned)
         for r in self.rows:

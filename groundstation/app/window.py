@@ -39,6 +39,8 @@ RESULT_COLOURS = {"accepted": ORANGE, "completed": GREEN, "refused": RED, "faile
 def _item(text: str, colour: QColor | None = None, bold: bool = False) -> QTableWidgetItem:
     it = QTableWidgetItem(text)
     it.setFlags(it.flags() & ~Qt.ItemIsEditable)
+    if len(text) > 24:
+        it.setToolTip(text)  # a long reason or status, cut by its column: whole in the tooltip
     if colour is not None:
         it.setForeground(QBrush(colour))
     if bold:
@@ -816,6 +818,7 @@ class MainWindow(QMainWindow):
             self.results_title.setText(f"{ACTIONS.get(self.last_run.action, self.last_run.action)} to "
                                        f"{', '.join(self.last_run.targets)}")
         self._fill_results(self.plan_acks, self.plan_run)
+        self._plan_outcome()
         if self.tabs.currentIndex() == 1:
             self._fill_checklist(rows)
         alerts = m.alerts()
@@ -834,6 +837,22 @@ class MainWindow(QMainWindow):
             if m.live_skeleton_ned is not None or self.view3d.live_skeleton_ned is not None:
                 self.view3d.set_live_skeleton(m.live_skeleton_ned)
             self.view3d.update()
+
+    def _plan_outcome(self) -> None:
+        """Once every drone answered the plan: who accepted it and who refused it, with each whole reason."""
+        run = self.plan_run
+        if run is None or getattr(run, "_outcome_shown", False) or not run.done(list(self.model.client.acks),
+                                                                                  self.model.clock()):
+            return
+        run._outcome_shown = True  # type: ignore[attr-defined]
+        res = self.model.results(run)
+        ok = [d for d, (r, _) in res.items() if r == "accepted"]
+        bad = {d: (r, why) for d, (r, why) in res.items() if r != "accepted"}
+        text = f"plan {run.command_ids[run.targets[0]]}: accepted by {', '.join(ok) or 'no drone'}"
+        if bad:
+            text += "; " + "; ".join(f"{r.upper()} by {d}: {why}" for d, (r, why) in sorted(bad.items()))
+        self.plan_reason.setText(text)
+        self.plan_reason.setStyleSheet("QLabel { color: %s; font-weight: bold; }" % ("#c01e1e" if bad else "#14802a"))
 
     def _fill_results(self, table: QTableWidget, run: CommandRun | None) -> None:
         if run is None:
