@@ -34,6 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--direction", type=int, choices=(1, -1), default=1, help="1 clockwise from above, -1 anti")
     pl.add_argument("--start-in", type=float, default=5.0, help="shared start time, seconds from now (default 5)")
     pl.add_argument("--min-separation", type=float, default=3.0, help="min_separation_m (default 3)")
+    pl.add_argument("--mode", choices=("orbit", "track"), default=None,
+                    help="say the plan's mode: orbit, or track (a tracking formation: --center is the person's start "
+                         "guess, --radius the stand-off, no turning); agents of the other mode refuse it (default: "
+                         "unsaid, each agent flies it in its own mode)")
     pl.add_argument("--wait", type=float, default=3.0, help="seconds to wait for the acks")
     pl.set_defaults(func=_plan)
 
@@ -84,8 +88,9 @@ def _plan(args) -> int:
         print("--center must be north,east,down (three numbers)", file=sys.stderr)
         return 2
     ids = [d.strip() for d in args.drones.split(",") if d.strip()]
-    plan = make_orbit_plan(ids, center, args.radius, args.altitude, args.speed, args.direction, args.start_in,
-                           min_separation_m=args.min_separation)
+    speed = 0.0 if args.mode == "track" else args.speed
+    plan = make_orbit_plan(ids, center, args.radius, args.altitude, speed, args.direction, args.start_in,
+                           min_separation_m=args.min_separation, mode=args.mode or "")
     with _client(args) as fleet:
         fleet.send_plan(plan)
         acks = fleet.wait_acks(plan.plan_id, ids, args.wait, ("accepted", "refused"))
