@@ -486,3 +486,8 @@ def test_the_agent_keeps_every_setpoint_out_of_the_plans_zones_and_warns_once():
     away = HoldSource((10.0, 0.0, -6.0), 0.0)  # fine: untouched
     np.testing.assert_array_equal(agent.next_setpoint(away, time.time(), st).position_ned_m, [10.0, 0.0, -6.0])
     assert agent.zone_clamps == 3
+    # a track-mode agent: its setpoints pass the same clamp (after the formation's step)
+    track = Agent(AgentConfig(drone_id="drone_1", fleet="f", mode="track"), FakeBus(), FakeAutopilot())
+    track.mission.set_plan(msgspec.structs.replace(plan, mode="track", angular_speed_rad_s=0.0))
+    sp = track.next_setpoint(into, time.time(), st)
+    assert math.hypot(sp.position_ned_m[0], sp.position_ned_m[1]) == pytest.approx(3.5) and track.zone_clamps == 1
