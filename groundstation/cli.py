@@ -5,7 +5,9 @@
     skycap fleet cmd land --target drone_2
     skycap fleet watch                          # table of the fleet, and the ground-station heartbeat
     skycap gs [--sim N]                         # the ground-station app (PySide6)
+    skycap gs --sim 3 --sim-mode track          # the simulated agents in track mode: plan a tracking formation
     skycap gs --selftest DIR                    # scripted offscreen operator session against a simulated fleet
+    skycap gs --selftest DIR --sim-mode track   # the same with a tracking formation (person estimate, tracker)
 """
 
 from __future__ import annotations
@@ -32,6 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--direction", type=int, choices=(1, -1), default=1, help="1 clockwise from above, -1 anti")
     pl.add_argument("--start-in", type=float, default=5.0, help="shared start time, seconds from now (default 5)")
     pl.add_argument("--min-separation", type=float, default=3.0, help="min_separation_m (default 3)")
+    pl.add_argument("--mode", choices=("orbit", "track"), default=None,
+                    help="say the plan's mode: orbit, or track (a tracking formation: --center is the person's start "
+                         "guess, --radius the stand-off, no turning); agents of the other mode refuse it (default: "
+                         "unsaid, each agent flies it in its own mode)")
     pl.add_argument("--wait", type=float, default=3.0, help="seconds to wait for the acks")
     pl.set_defaults(func=_plan)
 
@@ -82,8 +88,9 @@ def _plan(args) -> int:
         print("--center must be north,east,down (three numbers)", file=sys.stderr)
         return 2
     ids = [d.strip() for d in args.drones.split(",") if d.strip()]
-    plan = make_orbit_plan(ids, center, args.radius, args.altitude, args.speed, args.direction, args.start_in,
-                           min_separation_m=args.min_separation)
+    speed = 0.0 if args.mode == "track" else args.speed
+    plan = make_orbit_plan(ids, center, args.radius, args.altitude, speed, args.direction, args.start_in,
+                           min_separation_m=args.min_separation, mode=args.mode or "")
     with _client(args) as fleet:
         fleet.send_plan(plan)
         acks = fleet.wait_acks(plan.plan_id, ids, args.wait, ("accepted", "refused"))
@@ -120,6 +127,9 @@ def register_gs(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("gs", help="the ground-station app (PySide6): plan, watch and command the fleet; process flights")
     p.add_argument("--sim", type=int, default=0, metavar="N",
                    help="start the built-in simulated fleet of N drones (temporary fleet CA, mutual TLS)")
+    p.add_argument("--sim-mode", choices=("orbit", "track"), default="orbit",
+                   help="the simulated agents' mode: orbit (default) or track (active capture: they find and follow "
+                        "the person; plan a tracking formation)")
     p.add_argument("--selftest", type=Path, default=None, metavar="DIR",
                    help="run a scripted operator session offscreen against the simulated fleet (--sim N, default 2); "
                         "screenshots and DIR/selftest.json")
@@ -140,7 +150,8 @@ def _gs(args) -> int:
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
         from groundstation.app.selftest import run_selftest
 
-        report = run_selftest(args.selftest, drones=args.sim or 2, orbit_s=args.orbit_s, process=not args.no_process)
+        report = run_selftest(args.selftest, drones=args.sim or 2, orbit_s=args.orbit_s, process=not args.no_process,
+                              mode=args.sim_mode, cfg=cfg)
         for s in report["steps"]:
             print(f"{'ok  ' if s['ok'] else 'FAIL'} {s['name']}: {s['detail'][:160]}")
         print(f"self-test {'passed' if report.get('ok') else 'FAILED'}: {args.selftest / 'selftest.json'}")
@@ -155,7 +166,7 @@ def _gs(args) -> int:
     from PySide6.QtCore import QTimer
 
     app = QApplication.instance() or QApplication(["skycap gs"])
-    session = GsSession.open(cfg, sim_drones=args.sim)
+    session = GsSession.open(cfg, sim_drones=args.sim, sim_mode=args.sim_mode)
     try:
         win = MainWindow(session.model, session.cfg)
         win.show()

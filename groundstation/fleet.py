@@ -20,7 +20,7 @@ import time
 import uuid
 from typing import Callable, Iterable
 
-from shared_msgs import Command, CommandAck, Health, OrbitPlan, VehicleState, keys
+from shared_msgs import Command, CommandAck, GeofenceZone, Health, KeepOutZone, OrbitPlan, VehicleState, keys
 from skycap.errors import SkycapError
 from comms.transport import Transport, TransportConfig
 from onboard.config import SafetyConfig
@@ -50,9 +50,18 @@ def make_orbit_plan(
     gimbal_pitch_rad: float | None = None,
     plan_id: str | None = None,
     phase_offset_rad: dict[str, float] | None = None,
+    mode: str = "",
+    geofence: GeofenceZone | None = None,
+    keepout_zones: Iterable[KeepOutZone] = (),
 ) -> OrbitPlan:
     """An :class:`OrbitPlan` with the drones evenly spaced (in the given order) and a shared start time
-    ``start_in_s`` from now (0 = each drone starts when it receives it)."""
+    ``start_in_s`` from now (0 = each drone starts when it receives it).
+
+    ``mode``: "orbit", "track" (a tracking formation: ``center_ned_m`` is the person's start guess, ``radius_m`` /
+    ``altitude_m`` the stand-off, no turning) or "" (each agent flies it in its own mode); ``geofence`` and
+    ``keepout_zones`` travel with the plan and are enforced by the agents (and checked here first)."""
+    if mode not in ("", "orbit", "track"):
+        raise FleetError(f"plan mode {mode!r}: use 'orbit', 'track' or '' (each agent's own mode)")
 
     ids = list(drone_ids)
     if not ids:
@@ -77,6 +86,9 @@ def make_orbit_plan(
         gimbal_pitch_rad=gimbal_pitch_rad,
         min_separation_m=float(min_separation_m),
         max_speed_m_s=float(max_speed_m_s),
+        mode=mode,
+        geofence=geofence,
+        keepout_zones=list(keepout_zones),
     )
     check_plan(plan)
     return plan
@@ -86,6 +98,7 @@ def check_plan(plan: OrbitPlan, safety: SafetyConfig | None = None) -> None:
     """Refuse, before it is sent, a plan the drones would refuse: the agents' own check
     (:func:`onboard.mission.validate_plan`: finite values, positive radius, altitude inside the band, slot speed,
     slot separation, gimbal pitch) for every slot, against ``safety`` (default: the agents' default limits).
+    The plan's geofence and keep-out zones are checked the agents' way too (:func:`onboard.zones.plan_zone_violation`).
     A :class:`FleetError` names the field and the rule."""
     safety = safety or SafetyConfig()
     if not plan.phase_offset_rad:
@@ -209,8 +222,9 @@ class FleetClient:
         """Check ``plan`` (:func:`check_plan`) and publish it (latched: agents starting later query it)."""
         check_plan(plan)
         self.bus.publish(keys.gcs_key(self.fleet, keys.PLAN), plan, latch=True)
-        log.info("plan %s sent: radius %.1f m, altitude %.1f m, %.3f rad/s, slots %s", plan.plan_id, plan.radius_m,
-                 plan.altitude_m, plan.angular_speed_rad_s,
+        log.info("plan %s (%s) sent: radius %.1f m, altitude %.1f m, %.3f rad/s, %s, %d keep-out zone(s), slots %s",
+                 plan.plan_id, plan.mode or "agents' mode", plan.radius_m, plan.altitude_m, plan.angular_speed_rad_s,
+                 "fenced" if plan.geofence else "no fence", len(plan.keepout_zones),
                  {k: round(math.degrees(v)) for k, v in plan.phase_offset_rad.items()})
         return plan
 

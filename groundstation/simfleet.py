@@ -6,6 +6,7 @@ NOTE: this repeats the process launching of :func:`apps.demo.run_demo` (same com
 and the free ports (:mod:`skycap.ports`) are shared; the launch commands should move into a lower layer too.
 
     fleet = SimFleet.prepare(n=2, out="flights/gs-...")   # temporary CA, free endpoint and ports
+    fleet = SimFleet.prepare(n=2, out=..., mode="track")  # agents in track mode: they find and follow the person
     bus = Transport.open(TransportConfig.rendezvous(fleet.endpoint, fleet.keys_dir), "gs", identity="gcs")
     fleet.start()                                           # the processes join the app's rendezvous
     ...
@@ -37,7 +38,12 @@ __all__ = ["SimFleet"]
 @dataclass
 class SimFleet:
     """A simulated fleet of ``len(ids)`` drones spawned under the slots of an orbit of ``radius_m`` around the
-    origin, recording into ``out`` (a new flight folder), secured by a temporary fleet CA in ``keys_dir``."""
+    origin, recording into ``out`` (a new flight folder), secured by a temporary fleet CA in ``keys_dir``.
+
+    ``mode``: the agents' mode: "orbit" (fly the plan's circle) or "track" (active capture, as ``skycap demo --mode
+    track`` runs them: each agent fuses its own and its teammates' detections of the person (the simulator's box
+    detector on its camera, ``track.detections = "sim"``) and flies the formation MPC around the fused estimate;
+    the cameras are needed). The person starts near the origin."""
 
     ids: list[str]
     out: Path
@@ -48,14 +54,22 @@ class SimFleet:
     altitude_m: float = 6.0
     cameras: bool = True
     sim_set: list[str] = field(default_factory=list)
+    mode: str = "orbit"
+    #: track mode: the person's box height given to the agents (m; the simulator's person box measures ~1.95 m,
+    #: see apps.demo.TrackDemoConfig)
+    person_height_m: float = 1.95
     _procs: ProcessSupervisor | None = None
     _temp_keys: Path | None = None
 
     @classmethod
     def prepare(cls, n: int, out: str | Path, fleet: str = "gs-sim", radius_m: float = 8.0, altitude_m: float = 6.0,
-                cameras: bool = True, keys_dir: str = "") -> "SimFleet":
+                cameras: bool = True, keys_dir: str = "", mode: str = "orbit") -> "SimFleet":
         if n < 1:
             raise SkycapError(f"--sim {n}: the simulated fleet needs at least one drone")
+        if mode not in ("orbit", "track"):
+            raise SkycapError(f"simulated fleet mode {mode!r}: use 'orbit' or 'track' (--sim-mode)")
+        if mode == "track" and not cameras:
+            raise SkycapError("a simulated fleet in track mode needs the cameras: the drones find the person in them")
         ids = [f"drone_{i + 1}" for i in range(n)]
         flight = FlightFolder(out)
         if flight.has_recordings() or flight.summary_path.exists():
@@ -69,7 +83,7 @@ class SimFleet:
             log.info("simulated fleet: a temporary fleet CA in %s (mutual TLS + ACL; deleted at the end)", keys_dir)
         endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
         return cls(ids=ids, out=flight.path, endpoint=endpoint, keys_dir=keys_dir, fleet=fleet, radius_m=radius_m,
-                   altitude_m=altitude_m, cameras=cameras, _temp_keys=temp)
+                   altitude_m=altitude_m, cameras=cameras, mode=mode, _temp_keys=temp)
 
     @property
     def net_args(self) -> list[str]:
@@ -101,7 +115,19 @@ class SimFleet:
                                                   "--fleet", self.fleet, *self.net_args])
         for i, d in enumerate(self.ids):
             self._procs.start(d, py + ["agent", "--drone-id", d, "--fleet", self.fleet, "--connection",
-                                       f"udpin://0.0.0.0:{base + i}", "--record-dir", str(self.out), *self.net_args])
+                                       f"udpin://0.0.0.0:{base + i}", "--record-dir", str(self.out), *self.net_args,
+                                       *self.agent_set()])
+
+    def agent_set(self) -> list[str]:
+        """The agents' ``--set`` options for the mode (track: those ``skycap demo --mode track`` gives them with a
+        GPS-grade estimate and the simulator's detections)."""
+        if self.mode != "track":
+            return []
+        # the camera node tags each frame with the drone's latest published estimate: published often so that the
+        # pose at capture is not stale while the drone turns
+        return ["--set", "mode=track", "--set", "rates.state_publish_hz=25", "--set",
+                "track.camera_position_sigma_m=1.0", "--set", f"track.person_height_m={self.person_height_m}",
+                "--set", 'track.detections="sim"']
 
     def dead(self) -> dict[str, int]:
         """Processes that exited: {name: exit code}."""

@@ -22,6 +22,7 @@ from enum import Enum
 from shared_msgs import Command, OrbitPlan
 from onboard.config import SafetyConfig
 from onboard.orbit import min_slot_separation_m
+from onboard.zones import plan_zone_violation
 
 __all__ = ["State", "Action", "Mission", "validate_command", "validate_plan", "message_age_s", "closest_neighbour"]
 
@@ -85,14 +86,23 @@ def validate_command(cmd: Command, drone_id: str, now_ns: int) -> str | None:
     return None
 
 
-def validate_plan(plan: OrbitPlan, drone_id: str, safety: SafetyConfig, now_ns: int, max_age_s: float = 10.0) -> str | None:
-    """Why ``plan`` must be refused by ``drone_id``, or None."""
+def validate_plan(plan: OrbitPlan, drone_id: str, safety: SafetyConfig, now_ns: int, max_age_s: float = 10.0,
+                  mode: str | None = None) -> str | None:
+    """Why ``plan`` must be refused by ``drone_id``, or None.
+
+    ``mode``: the agent's configured mode ("orbit" / "track"; None = not checked): a plan that says another mode is
+    refused (an orbit-mode agent cannot fly a tracking formation: it has no tracker or formation MPC running). The
+    plan's geofence and keep-out zones (version 2) are checked by :func:`onboard.zones.plan_zone_violation`."""
     vals = [*plan.center_ned_m, plan.radius_m, plan.altitude_m, plan.angular_speed_rad_s, plan.min_separation_m,
             plan.max_speed_m_s, *plan.phase_offset_rad.values()]
     if plan.gimbal_pitch_rad is not None:
         vals.append(plan.gimbal_pitch_rad)
     if not all(math.isfinite(v) for v in vals):
         return "bad field: non-finite number in plan"
+    if plan.mode and mode is not None and plan.mode != mode:
+        what = {"track": "a tracking formation", "orbit": "an orbit"}[plan.mode]
+        return (f"wrong mode: the plan is {what} (mode {plan.mode!r}) but this agent flies mode {mode!r} "
+                f"(its configuration's mode; restart the agent with mode = {plan.mode!r} or send an {mode} plan)")
     if drone_id not in plan.phase_offset_rad:
         return f"wrong target: plan has no phase slot for {drone_id} (slots: {sorted(plan.phase_offset_rad)})"
     if plan.radius_m <= 0:
@@ -113,6 +123,9 @@ def validate_plan(plan: OrbitPlan, drone_id: str, safety: SafetyConfig, now_ns: 
         return f"bad field phase_offset_rad: slots {sep:.2f} m apart, below min_separation_m={plan.min_separation_m}"
     if plan.gimbal_pitch_rad is not None and not -math.pi / 2 - 1e-9 <= plan.gimbal_pitch_rad <= math.pi / 6:
         return f"bad field gimbal_pitch_rad={plan.gimbal_pitch_rad}: must be in -pi/2..pi/6"
+    zone = plan_zone_violation(plan, drone_id)
+    if zone is not None:
+        return zone
     age = message_age_s(plan.header.t_sent_ns, now_ns)
     if age > max_age_s:
         return f"stale: plan sent {age:.1f} s ago (> {max_age_s} s)"

@@ -38,6 +38,8 @@ __all__ = [
     "TargetEstimate",
     "FormationPlan",
     "OrbitPlan",
+    "GeofenceZone",
+    "KeepOutZone",
     "Command",
     "CommandAck",
     "Health",
@@ -255,15 +257,48 @@ class FormationPlan(Message, tag="formation_plan"):
     fallback: bool = False  #: the plan is the brake-and-hold fallback
 
 
+class GeofenceZone(msgspec.Struct, kw_only=True):
+    """The fence a plan must stay inside (OrbitPlan version 2): a vertical cylinder in the flight's local NED
+    world frame (north / east metres from the flight's origin, the frame of ``center_ned_m``) and an altitude band
+    (metres above the take-off ground, the frame of ``altitude_m``)."""
+
+    center_ne_m: tuple[float, float] = (0.0, 0.0)
+    radius_m: float = 30.0
+    min_altitude_m: float = 2.0
+    max_altitude_m: float = 30.0
+
+
+class KeepOutZone(msgspec.Struct, kw_only=True):
+    """An area no drone may enter (OrbitPlan version 2): a vertical cylinder of infinite height (a building, a
+    tree line, spectators), in the flight's local NED world frame (north / east metres from the origin)."""
+
+    name: str = ""
+    north_m: float
+    east_m: float
+    radius_m: float
+
+
+PlanMode = Literal["", "orbit", "track"]
+
+
 class OrbitPlan(Message, tag="orbit_plan"):
     """A shared orbit around a point: every drone flies its phase slot of one circle.
 
     Drone k's angle at time t: ``phase_offset_rad[k] + direction * angular_speed_rad_s * (t - start_time)``,
     measured in the NED horizontal plane from north towards east; its position is
     ``center + radius * (cos, sin, 0)`` at ``down = -altitude_m``; camera yaw points at the centre.
+
+    ``mode = "track"`` (a tracking formation, flown by agents configured ``mode = "track"``): ``center_ned_m`` is
+    the operator's start guess of the person, ``radius_m`` / ``altitude_m`` the stand-off kept from the person,
+    ``phase_offset_rad`` the slot angles around the person (``angular_speed_rad_s`` 0). ``mode = ""``: not said
+    (version 1, or a sender that does not care): each agent flies it in its own configured mode.
+
+    Version 2 added ``mode``, ``geofence`` and ``keepout_zones`` (version 1 decodes with "", None and none):
+    the agents refuse a plan that leaves the fence or enters a zone, and keep their setpoints out of them.
     """
 
-    SCHEMA_VERSION: ClassVar[int] = 1
+    SCHEMA_VERSION: ClassVar[int] = 2
+    READABLE_VERSIONS: ClassVar[tuple[int, ...]] = (1,)
     plan_id: str
     center_ned_m: tuple[float, float, float]  #: the point looked at (person position on the ground)
     radius_m: float
@@ -275,6 +310,9 @@ class OrbitPlan(Message, tag="orbit_plan"):
     gimbal_pitch_rad: float | None = None  #: None = point the camera at the centre
     min_separation_m: float = 3.0
     max_speed_m_s: float = 5.0
+    mode: PlanMode = ""  #: version 2: "orbit", "track" (tracking formation) or "" (not said)
+    geofence: GeofenceZone | None = None  #: version 2: the fence the agents enforce (None: only their own limits)
+    keepout_zones: list[KeepOutZone] = msgspec.field(default_factory=list)  #: version 2
 
 
 CommandAction = Literal["arm", "takeoff", "start", "pause", "land", "return", "disarm"]

@@ -43,11 +43,35 @@ class ChecklistConfig:
 
 @dataclass
 class GeofenceConfig:
-    """The operator's fence: a circle around the origin and an altitude band (the agents enforce their own)."""
+    """The operator's fence: a circle of ``radius_m`` around the origin of the flight's local NED world frame
+    (north / east metres from the flight's origin, the frame of every plan and drone position the app shows) and
+    an altitude band (metres above the take-off ground). It is sent with every plan (OrbitPlan v2 ``geofence``):
+    the app refuses a plan that leaves it, and so do the agents, which also keep their setpoints inside it."""
 
     radius_m: float = 30.0
     min_altitude_m: float = 2.0
     max_altitude_m: float = 30.0
+
+
+@dataclass
+class KeepOutZoneConfig:
+    """An area no drone may enter: a vertical cylinder (infinite height) in the flight's local NED world frame,
+    north / east metres from the flight's origin (the map's frame: north up, the origin at the fence's centre).
+    Sent with every plan (OrbitPlan v2 ``keepout_zones``); the app and the agents refuse a plan whose orbit circle
+    or formation slot enters one, and the agents keep their setpoints out of it. In TOML::
+
+        [[keepout_zones]]
+        name = "shed"
+        north_m = 14.0
+        east_m = -9.0
+        radius_m = 4.0
+
+    or ``--set 'keepout_zones=[{name="shed", north_m=14, east_m=-9, radius_m=4}]'``."""
+
+    name: str = ""
+    north_m: float = 0.0
+    east_m: float = 0.0
+    radius_m: float = 3.0
 
 
 @dataclass
@@ -61,3 +85,20 @@ class GsConfig:
     ui: UiConfig = field(default_factory=UiConfig)
     checklist: ChecklistConfig = field(default_factory=ChecklistConfig)
     geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
+    keepout_zones: list[KeepOutZoneConfig] = field(default_factory=list)
+
+    def validate(self) -> "GsConfig":
+        """Refuse a fence or zone that cannot be flown (a :class:`skycap.config.ConfigError` naming it)."""
+        import math
+
+        from skycap.config import ConfigError
+
+        g = self.geofence
+        if not (g.radius_m > 0 and 0 <= g.min_altitude_m < g.max_altitude_m):
+            raise ConfigError(f"geofence: radius_m ({g.radius_m}) must be > 0 and 0 <= min_altitude_m "
+                              f"({g.min_altitude_m}) < max_altitude_m ({g.max_altitude_m})")
+        for i, z in enumerate(self.keepout_zones):
+            if not (all(math.isfinite(v) for v in (z.north_m, z.east_m, z.radius_m)) and z.radius_m > 0):
+                raise ConfigError(f"keepout_zones[{i}] ({z.name or 'unnamed'}): north_m, east_m, radius_m must be "
+                                  f"finite and radius_m > 0 (got {z.north_m}, {z.east_m}, {z.radius_m})")
+        return self

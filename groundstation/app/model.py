@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -18,13 +19,13 @@ from typing import Callable
 
 from groundstation.app.config import GsConfig
 from groundstation.fleet import FleetClient, FleetError, make_orbit_plan
-from shared_msgs import CameraFrame, Detections, OrbitPlan, TargetEstimate, keys
+from shared_msgs import CameraFrame, Detections, GeofenceZone, KeepOutZone, OrbitPlan, TargetEstimate, keys
 from shared_msgs.messages import CameraInfo, CameraStatus, FormationPlan, SimTruth
 from skycap.frames import yaw_from_quat_wxyz
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Check", "CommandRun", "DroneRow", "Event", "FleetModel", "PlanForm", "GPS_GRADES"]
+__all__ = ["Check", "CommandRun", "DroneRow", "Event", "FleetModel", "PlanForm", "PLAN_MODES", "GPS_GRADES"]
 
 #: MAVLink GPS_FIX_TYPE -> the grade shown
 GPS_GRADES = {0: "no GPS", 1: "no fix", 2: "2D", 3: "3D", 4: "DGPS", 5: "RTK float", 6: "RTK fixed", 7: "static",
@@ -90,9 +91,19 @@ class Check:
     detail: str
 
 
+PLAN_MODES = {"orbit": "Orbit", "track": "Tracking formation"}
+
+
 @dataclass
 class PlanForm:
-    """The plan form's fields, as the operator typed them."""
+    """The plan form's fields, as the operator typed them.
+
+    ``mode = "orbit"``: the drones circle ``center`` at ``radius_m`` / ``altitude_m`` and ``speed_m_s``.
+    ``mode = "track"`` (a tracking formation, flown by agents in track mode: they find the person in their cameras,
+    fuse their detections and keep their slots around the fused estimate): ``center`` is the operator's start
+    guess of the person (where the drones look until the first detection is fused), ``radius_m`` / ``altitude_m``
+    the stand-off kept from the person, the slots equally spaced around them; ``speed_m_s`` and ``direction`` are
+    not used."""
 
     center_north_m: float = 0.0
     center_east_m: float = 0.0
@@ -102,6 +113,7 @@ class PlanForm:
     direction: int = 1  #: 1 clockwise from above, -1 anticlockwise
     drones: list[str] = field(default_factory=list)
     min_separation_m: float = 3.0
+    mode: str = "orbit"  #: "orbit" or "track"
 
 
 @dataclass
@@ -159,6 +171,15 @@ def recorder_text(rs) -> str:
         return f"NOT recording ({rs.error or 'no reason given'}), {free}"
     text = f"{rs.file}, {rs.bytes_written / 1e6:.1f} MB, {rs.dropped} dropped, {free}"
     return text if rs.ok else f"ERROR {rs.error}; {text}"
+
+
+def tracker_text(t: TargetEstimate) -> str:
+    """The fleet panel's tracker cell from a drone's fused person estimate: status, sources fused, where (local NED
+    north / east m) and the 1-sigma horizontal position uncertainty."""
+    cov = t.covariance
+    sigma = math.sqrt(max(0.0, cov[0]) + max(0.0, cov[7])) if len(cov) >= 36 else float("nan")
+    n, e = t.position_ned_m[0], t.position_ned_m[1]
+    return f"{t.status} ({t.num_sources} src) at ({n:.1f}, {e:.1f}) ±{sigma:.1f} m"
 
 
 def detector_text(ds) -> str:
@@ -236,7 +257,9 @@ class FleetModel:
         self.live_skeleton_ned = None
         self.events: list[Event] = []
         self.runs: list[CommandRun] = []
-        self.plan: OrbitPlan | None = None
+        self.plan: OrbitPlan | None = None  #: the plan shown (the last sent, until every drone refused it)
+        self._plan_before: OrbitPlan | None = None
+        self._plan_run: CommandRun | None = None
         self.overrides: dict[str, str] = {}  #: drone -> why the operator overrode its failing checklist
         self._seen: dict[str, dict] = {}  #: per drone: what was already alerted (edge-triggered alerts)
         self._acks_seen = 0
@@ -324,6 +347,22 @@ class FleetModel:
                 for d, (res, why) in run.results(acks, now).items():
                     if res == "no answer":
                         self.log_event("alert", d, f"NO ANSWER to {run.action} within {run.timeout_s:.0f} s")
+        self._check_plan_refused(acks, now)
+
+    def _plan_accepted(self, run: CommandRun) -> bool:
+        return any(r == "accepted" for r, _ in run.results(list(self.client.acks), self.clock()).values())
+
+    def _check_plan_refused(self, acks, now: float) -> None:
+        """Every drone answered the last plan and none accepted it: the map shows the plan before it again."""
+        run = self._plan_run
+        if run is None or self.plan is None or not run.done(acks, now) or getattr(run, "_refusal_seen", False):
+            return
+        run._refusal_seen = True  # type: ignore[attr-defined]
+        if not any(r == "accepted" for r, _ in run.results(acks, now).values()):
+            refused = self.plan
+            self.plan = self._plan_before
+            self.log_event("alert", "", f"plan {refused.plan_id} accepted by no drone: not shown on the map"
+                           + (f"; the map shows plan {self.plan.plan_id} again" if self.plan else ""))
 
     # --- views ------------------------------------------------------------------------------------
     def drone_ids(self) -> list[str]:
@@ -369,10 +408,19 @@ class FleetModel:
             tgt = self.targets.get(d)
             st = self.camera_status.get(d)
         if tgt is not None:
-            r.tracker = f"{tgt.status} ({tgt.num_sources} src)"
+            r.tracker = tracker_text(tgt)
         if st is not None:
             r.recorder += f", cam dropped {st.dropped}"
         return r
+
+    def person_estimate(self) -> TargetEstimate | None:
+        """The fleet's person estimate to show: the newest of the drones' fused estimates that is tracking (else the
+        newest of any status); None before any drone published one."""
+        with self._lock:
+            ests = list(self.targets.values())
+        if not ests:
+            return None
+        return max(ests, key=lambda t: (t.status == "tracking", t.header.t_measurement_ns))
 
     def rows(self) -> list[DroneRow]:
         return [self.row(d) for d in self.drone_ids()]
@@ -421,10 +469,26 @@ class FleetModel:
                        f"failing: {'; '.join(failing) or 'none'}")
 
     # --- plans ------------------------------------------------------------------------------------
+    def geofence_zone(self) -> GeofenceZone:
+        """The configured fence as the plan carries it (around the local frame's origin)."""
+        g = self.cfg.geofence
+        return GeofenceZone(center_ne_m=(0.0, 0.0), radius_m=float(g.radius_m), min_altitude_m=float(g.min_altitude_m),
+                            max_altitude_m=float(g.max_altitude_m))
+
+    def keepout_zones(self) -> list[KeepOutZone]:
+        """The configured keep-out zones as the plan carries them."""
+        return [KeepOutZone(name=z.name, north_m=float(z.north_m), east_m=float(z.east_m), radius_m=float(z.radius_m))
+                for z in self.cfg.keepout_zones]
+
     def validate_plan(self, form: PlanForm) -> tuple[OrbitPlan | None, str]:
         """(plan, "") or (None, the reason): field values, geofence, separation, duplicates, then the agents'
-        own checks (:func:`groundstation.fleet.check_plan`)."""
+        own checks (:func:`groundstation.fleet.check_plan`: with the fence and the keep-out zones, the agents' own
+        :func:`onboard.zones.plan_zone_violation`: the orbit circle, or each formation slot, outside the fence or in
+        a zone)."""
         g = self.cfg.geofence
+        if form.mode not in PLAN_MODES:
+            return None, f"plan mode {form.mode!r}: use {' or '.join(PLAN_MODES)}"
+        track = form.mode == "track"
         if not form.drones:
             return None, "select at least one drone for the plan"
         dup = sorted({d for d in form.drones if form.drones.count(d) > 1})
@@ -435,30 +499,36 @@ class FleetModel:
             if not math.isfinite(v):
                 return None, f"{name} = {v} is not a number"
         if form.radius_m <= 0:
-            return None, f"radius_m = {form.radius_m:g}: the radius must be positive"
-        if form.speed_m_s < 0:
+            return None, (f"radius_m = {form.radius_m:g}: the "
+                          f"{'stand-off radius' if track else 'radius'} must be positive")
+        if not track and form.speed_m_s < 0:  # a tracking formation does not turn: speed not used
             return None, f"speed_m_s = {form.speed_m_s:g}: the speed must be ≥ 0 (direction sets the sense)"
         if not g.min_altitude_m <= form.altitude_m <= g.max_altitude_m:
             return None, (f"altitude_m = {form.altitude_m:g} is outside the fence's band "
                           f"{g.min_altitude_m:g}..{g.max_altitude_m:g} m")
-        if math.hypot(form.center_north_m, form.center_east_m) + form.radius_m > g.radius_m:
+        if not track and math.hypot(form.center_north_m, form.center_east_m) + form.radius_m > g.radius_m:
             return None, (f"the orbit (centre {form.center_north_m:g}, {form.center_east_m:g} m, radius "
                           f"{form.radius_m:g} m) leaves the fence's {g.radius_m:g} m circle")
+        if track and math.hypot(form.center_north_m, form.center_east_m) > g.radius_m:
+            return None, (f"the person's start guess ({form.center_north_m:g}, {form.center_east_m:g} m) is outside "
+                          f"the fence's {g.radius_m:g} m circle")
         n = len(form.drones)
         if n > 1:
             chord = 2 * form.radius_m * math.sin(math.pi / n)
             if chord < form.min_separation_m:
-                return None, (f"separation not feasible: {n} drones on a {form.radius_m:g} m circle are "
+                return None, (f"separation not feasible: {n} drones on a {form.radius_m:g} m "
+                          f"{'stand-off circle' if track else 'circle'} are "
                               f"{chord:.1f} m apart, under min_separation_m = {form.min_separation_m:g} m; "
                               f"use a radius ≥ {form.min_separation_m / (2 * math.sin(math.pi / n)):.1f} m")
         if form.direction not in (1, -1):
             return None, f"direction = {form.direction}: 1 (clockwise) or -1"
         try:
             plan = make_orbit_plan(form.drones, (form.center_north_m, form.center_east_m, 0.0), form.radius_m,
-                                   form.altitude_m, form.speed_m_s / form.radius_m, form.direction,
-                                   min_separation_m=form.min_separation_m)
-        except FleetError as e:
-            return None, str(e)
+                                   form.altitude_m, 0.0 if track else form.speed_m_s / form.radius_m,
+                                   form.direction, min_separation_m=form.min_separation_m, mode=form.mode,
+                                   geofence=self.geofence_zone(), keepout_zones=self.keepout_zones())
+        except FleetError as e:  # the agents' own rules; the form shows "NOT SENT" already, without the plan's id
+            return None, re.sub(r"^plan \S+ not sent: ", "", str(e))
         return plan, ""
 
     def send_plan(self, form: PlanForm) -> tuple[CommandRun | None, str]:
@@ -467,12 +537,19 @@ class FleetModel:
             self.log_event("warning", "", f"plan not sent: {why}")
             return None, why
         self.client.send_plan(plan)
+        if self.plan is not None and self._plan_run is not None and self._plan_accepted(self._plan_run):
+            self._plan_before = self.plan  # the plan some drone flies: shown again if every drone refuses this one
         self.plan = plan
         run = CommandRun("plan", list(form.drones), {d: plan.plan_id for d in form.drones}, self.clock(),
                          self.cfg.ui.command_timeout_s)
         self.runs.append(run)
-        self.log_event("info", "", f"plan {plan.plan_id} sent to {', '.join(form.drones)}: radius "
-                       f"{plan.radius_m:g} m, altitude {plan.altitude_m:g} m, {form.speed_m_s:g} m/s")
+        self._plan_run = run
+        what = (f"tracking formation, start guess ({form.center_north_m:g}, {form.center_east_m:g}) m, stand-off "
+                f"{plan.radius_m:g} m" if form.mode == "track" else
+                f"orbit, radius {plan.radius_m:g} m, {form.speed_m_s:g} m/s")
+        self.log_event("info", "", f"plan {plan.plan_id} ({what}, altitude {plan.altitude_m:g} m; fence "
+                       f"{self.cfg.geofence.radius_m:g} m and {len(plan.keepout_zones)} keep-out zone(s) sent with it) "
+                       f"sent to {', '.join(form.drones)}")
         return run, ""
 
     # --- commands ---------------------------------------------------------------------------------

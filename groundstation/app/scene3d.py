@@ -5,7 +5,8 @@
 * :class:`SkeletonView` / :class:`SkeletonPlayer` - a processed flight's ``motion.npz`` played back at its real
   rate (play / pause, frame slider with time), the reconstruction's metrics and "Open in rerun".
 * :class:`Live3DView` - the fleet live: drones (heading, camera frustum), the person estimate or the simulator's
-  truth, the planned orbit and the geofence cylinder; :meth:`Live3DView.set_live_skeleton` draws a (17, 3) NED
+  truth, the planned orbit (or tracking formation), the geofence and keep-out zone cylinders;
+  :meth:`Live3DView.set_live_skeleton` draws a (17, 3) NED
   skeleton (fed from :attr:`FleetModel.live_skeleton_ned`, which nothing fills yet: a future live triangulation
   of the drones' keypoints would).
 """
@@ -422,7 +423,7 @@ class Live3DView(Scene3DView):
         self.cfg = cfg
         self.rows = []
         self.live_skeleton_ned: np.ndarray | None = None
-        self.drawn: dict[str, int] = {"drones": 0, "persons": 0, "skeleton_bones": 0}
+        self.drawn: dict[str, int] = {"drones": 0, "persons": 0, "skeleton_bones": 0, "zones": 0}
         self.distance_m = max(20.0, 2.2 * cfg.geofence.radius_m)
         self.elevation_rad = math.radians(30)
         self.target_ned = np.array([0.0, 0.0, -2.0])
@@ -448,7 +449,11 @@ class Live3DView(Scene3DView):
         if plan is None or self.user_moved:
             return
         self.target_ned = np.array([plan.center_ned_m[0], plan.center_ned_m[1], -plan.altitude_m / 2])
-        self.distance_m = max(10.0, 3.8 * plan.radius_m)
+        # far enough to show the circle, and the keep-out zones near it (within the fence)
+        cn, ce = plan.center_ned_m[0], plan.center_ned_m[1]
+        zones = max((math.hypot(z.north_m - cn, z.east_m - ce) + z.radius_m for z in self.cfg.keepout_zones),
+                    default=0.0)
+        self.distance_m = max(10.0, 3.8 * plan.radius_m, 2.8 * zones)
 
     def set_live_skeleton(self, joints_ned) -> None:
         """Draw a (17, 3) NED skeleton (COCO-17, metres); None removes it. The feed is
@@ -464,7 +469,7 @@ class Live3DView(Scene3DView):
 
     def draw_scene(self, p: QPainter) -> None:
         m, g = self.model, self.cfg.geofence
-        drawn = {"drones": 0, "persons": 0, "skeleton_bones": 0}
+        drawn = {"drones": 0, "persons": 0, "skeleton_bones": 0, "zones": 0}
         # geofence cylinder: floor and ceiling circles and 8 uprights
         p.setPen(QPen(QColor(200, 30, 30, 170), 1, Qt.DashLine))
         for alt in (g.min_altitude_m, g.max_altitude_m):
@@ -473,9 +478,26 @@ class Live3DView(Scene3DView):
             a = k * math.pi / 4
             n, e = g.radius_m * math.cos(a), g.radius_m * math.sin(a)
             self._segments(p, np.array([[[n, e, -g.min_altitude_m], [n, e, -g.max_altitude_m]]]))
+        # keep-out zones: red cylinders from the ground to the fence's ceiling, with their names
+        for i, z in enumerate(self.cfg.keepout_zones):
+            p.setPen(QPen(QColor(200, 30, 30), 2))
+            for alt in (0.0, g.max_altitude_m):
+                self._polyline(p, view3d.circle_ned(z.north_m, z.east_m, -alt, z.radius_m))
+            for k in range(6):
+                a = k * math.pi / 3
+                n, e = z.north_m + z.radius_m * math.cos(a), z.east_m + z.radius_m * math.sin(a)
+                self._segments(p, np.array([[[n, e, 0.0], [n, e, -g.max_altitude_m]]]))
+            uv = self.to_px([[z.north_m, z.east_m, 0.0]])[0]  # its foot
+            if np.all(np.isfinite(uv)) and 0 <= uv[0] <= self.width() and 0 <= uv[1] <= self.height():
+                drawn["zones"] += 1  # counted only when in view
+            self._label(p, [z.north_m - z.radius_m, z.east_m, 0.0], f"keep-out: {z.name or i + 1}")
         plan = m.plan
         if plan is not None:
             cn, ce = plan.center_ned_m[0], plan.center_ned_m[1]
+            if plan.mode == "track":  # a tracking formation: its stand-off circle around the person estimate
+                est = m.person_estimate()
+                if est is not None:
+                    cn, ce = est.position_ned_m[0], est.position_ned_m[1]
             p.setPen(QPen(QColor(30, 90, 200), 2))
             self._polyline(p, view3d.circle_ned(cn, ce, -plan.altitude_m, plan.radius_m))
             p.setPen(QPen(QColor(30, 90, 200, 90), 1, Qt.DotLine))
@@ -487,12 +509,14 @@ class Live3DView(Scene3DView):
             if self._segments(p, np.array([[[r[0], r[1], 0.0], [r[0], r[1], -1.7]]])):
                 drawn["persons"] += 1
                 self._label(p, [r[0], r[1], -1.8], "person (sim truth)")
+        shown = m.person_estimate()
         for d, t in list(m.targets.items()):
             pos = t.position_ned_m
             p.setPen(QPen(QColor(160, 0, 160), 3))
             if self._segments(p, np.array([[[pos[0], pos[1], 0.0], [pos[0], pos[1], -1.7]]])):
                 drawn["persons"] += 1
-                self._label(p, [pos[0], pos[1], -1.9], f"person est. ({d}, {t.status})")
+                if t is shown:  # one label: the drones' estimates overlap
+                    self._label(p, [pos[0], pos[1], -1.9], f"person est. ({d}, {t.status}; {len(m.targets)} drone(s))")
         if self.live_skeleton_ned is not None:
             drawn["skeleton_bones"] = self._skeleton(p, self.live_skeleton_ned)
         for r in self.rows:
@@ -521,7 +545,8 @@ class Live3DView(Scene3DView):
                             + (f" ({r.age_s:.0f} s old)" if r.stale else ""))
         self.drawn = drawn
         p.setPen(QColor(60, 60, 60))
-        p.drawText(8, 16, f"3D: {drawn['drones']} drone(s), {drawn['persons']} person marker(s); live skeleton: "
+        p.drawText(8, 16, f"3D: {drawn['drones']} drone(s), {drawn['persons']} person marker(s), {drawn['zones']} "
+                   "keep-out zone(s); live skeleton: "
                    + ("drawn" if drawn["skeleton_bones"] else "none (the drones publish no live 3D keypoints yet)"))
 
     def _label(self, p: QPainter, at_ned, text: str) -> None:

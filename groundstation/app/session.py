@@ -23,7 +23,7 @@ __all__ = ["GsSession"]
 
 class GsSession:
     def __init__(self, cfg: GsConfig, sim: SimFleet | None = None):
-        self.cfg = cfg
+        self.cfg = cfg.validate()
         self.sim = sim
         net = cfg.network
         if not net.keys_dir and net.endpoint.startswith(("tls/", "quic/")):
@@ -49,14 +49,15 @@ class GsSession:
 
     @classmethod
     def open(cls, cfg: GsConfig, sim_drones: int = 0, sim_out: str | Path | None = None,
-             sim_cameras: bool = True) -> "GsSession":
+             sim_cameras: bool = True, sim_mode: str = "orbit") -> "GsSession":
         """Open the listener; with ``sim_drones`` > 0, first prepare the simulated fleet (its temporary CA and
-        endpoint replace the configured ones) and start its processes once the listener is open."""
+        endpoint replace the configured ones; its agents in ``sim_mode``: "orbit" or "track") and start its
+        processes once the listener is open."""
         sim = None
         if sim_drones > 0:
             out = sim_out or Path(cfg.flights_dir) / time.strftime("gs-sim-%Y%m%d-%H%M%S", time.gmtime())
             sim = SimFleet.prepare(sim_drones, out, fleet=cfg.fleet if cfg.fleet != "default" else "gs-sim",
-                                   cameras=sim_cameras)
+                                   cameras=sim_cameras, mode=sim_mode)
             cfg = dataclasses.replace(cfg, fleet=sim.fleet, network=dataclasses.replace(
                 cfg.network, endpoint=sim.endpoint, keys_dir=sim.keys_dir))
         s = cls(cfg, sim)
@@ -66,7 +67,8 @@ class GsSession:
             except Exception:
                 s.close()
                 raise
-            s.model.log_event("info", "", f"simulated fleet of {sim_drones} started, recording into {sim.out}")
+            s.model.log_event("info", "", f"simulated fleet of {sim_drones} started ({sim.mode} mode), "
+                                      f"recording into {sim.out}")
         return s
 
     def close(self) -> None:

@@ -23,7 +23,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QFormLayout, QGridL
 
 from groundstation.app.config import GsConfig
 from groundstation.app.jobs import JobError, ReconstructJob, list_flights
-from groundstation.app.model import ACTIONS, CommandRun, FleetModel, PlanForm
+from groundstation.app.model import ACTIONS, PLAN_MODES, CommandRun, FleetModel, PlanForm
 from groundstation.app.scene3d import Live3DView, SkeletonPlayer
 
 log = logging.getLogger(__name__)
@@ -39,6 +39,8 @@ RESULT_COLOURS = {"accepted": ORANGE, "completed": GREEN, "refused": RED, "faile
 def _item(text: str, colour: QColor | None = None, bold: bool = False) -> QTableWidgetItem:
     it = QTableWidgetItem(text)
     it.setFlags(it.flags() & ~Qt.ItemIsEditable)
+    if len(text) > 24:
+        it.setToolTip(text)  # a long reason or status, cut by its column: whole in the tooltip
     if colour is not None:
         it.setForeground(QBrush(colour))
     if bold:
@@ -152,15 +154,43 @@ class MapView(QWidget):
             a, b = self.to_px(-2 * self.half_m, i * step), self.to_px(2 * self.half_m, i * step)
             p.drawLine(a, b)
         p.setPen(QPen(QColor(90, 90, 90), 1))
-        p.drawText(8, self.height() - 8, f"grid {step:g} m   north up   (click: orbit centre)")
+        p.drawText(8, self.height() - 8, f"grid {step:g} m   north up   local NED frame, origin = fence centre   "
+                   "(click: orbit centre / person start guess)")
         g = self.cfg.geofence
         p.setPen(QPen(RED, 2, Qt.DashLine))
         p.setBrush(Qt.NoBrush)
         p.drawEllipse(self.to_px(0, 0), g.radius_m * s, g.radius_m * s)
         p.drawText(self.to_px(g.radius_m, 0) + QPointF(-70, -5), f"geofence {g.radius_m:g} m, "
                    f"{g.min_altitude_m:g}-{g.max_altitude_m:g} m alt")
+        for i, z in enumerate(self.cfg.keepout_zones):  # keep-out zones: hatched red discs with their names
+            zc = self.to_px(z.north_m, z.east_m)
+            p.setPen(QPen(RED, 2))
+            p.setBrush(QBrush(QColor(200, 30, 30, 110), Qt.BDiagPattern))
+            p.drawEllipse(zc, z.radius_m * s, z.radius_m * s)
+            p.drawText(zc + QPointF(-30, -z.radius_m * s - 4), f"keep-out: {z.name or i + 1} ({z.radius_m:g} m)")
+        p.setBrush(Qt.NoBrush)
         plan = self.model.plan
-        if plan is not None:
+        if plan is not None and plan.mode == "track":
+            # a tracking formation: the start guess, and the slots around the fused person estimate (the guess
+            # until the drones have one)
+            g0 = self.to_px(plan.center_ned_m[0], plan.center_ned_m[1])
+            p.setPen(QPen(QColor(30, 90, 200), 2))
+            p.drawLine(g0 + QPointF(-6, -6), g0 + QPointF(6, 6))
+            p.drawLine(g0 + QPointF(-6, 6), g0 + QPointF(6, -6))
+            p.drawText(g0 + QPointF(-80, -8), "start guess")
+            est = self.model.person_estimate()
+            cn, ce = (est.position_ned_m[0], est.position_ned_m[1]) if est is not None else plan.center_ned_m[:2]
+            c = self.to_px(cn, ce)
+            p.setPen(QPen(QColor(30, 90, 200), 2, Qt.DashLine))
+            p.drawEllipse(c, plan.radius_m * s, plan.radius_m * s)
+            for d, ph in plan.phase_offset_rad.items():
+                sp = self.to_px(cn + plan.radius_m * math.cos(ph), ce + plan.radius_m * math.sin(ph))
+                p.setBrush(QColor(30, 90, 200, 60))
+                p.drawEllipse(sp, 5, 5)
+                p.drawText(sp + QPointF(6, 12), f"slot {d}")
+            p.setBrush(Qt.NoBrush)
+            p.drawText(c + QPointF(-60, plan.radius_m * s + 14), f"tracking formation: stand-off {plan.radius_m:g} m")
+        elif plan is not None:
             c = self.to_px(plan.center_ned_m[0], plan.center_ned_m[1])
             p.setPen(QPen(QColor(30, 90, 200), 2))
             p.drawEllipse(c, plan.radius_m * s, plan.radius_m * s)
@@ -184,6 +214,7 @@ class MapView(QWidget):
             p.setBrush(Qt.NoBrush)
             p.drawRect(QRectF(tp.x() - 4, tp.y() - 4, 8, 8))
             p.drawText(tp + QPointF(6, -6), "person (sim truth)")
+        shown = self.model.person_estimate()
         for d, t in list(self.model.targets.items()):
             cov = t.covariance
             sn = math.sqrt(max(cov[0], 1e-6)) if len(cov) >= 36 else 1.0
@@ -192,7 +223,8 @@ class MapView(QWidget):
             p.setPen(QPen(QColor(160, 0, 160), 2))
             p.setBrush(QColor(160, 0, 160, 40))
             p.drawEllipse(c, max(3, 2 * se * s), max(3, 2 * sn * s))
-            p.drawText(c + QPointF(8, 14), f"person est. ({d}, {t.status})")
+            if t is shown:  # one label (the estimates of the drones overlap): the fleet's newest tracking one
+                p.drawText(c + QPointF(8, 16), f"person est. ({d}, {t.status}; {len(self.model.targets)} drone(s))")
         for d, fp in list(self.model.formation.items()):  # track mode: each drone's planned path (MPC horizon)
             pts = fp.positions_ned_m
             if len(pts) >= 6:
@@ -312,8 +344,10 @@ class ThumbGrid(QWidget):
 class MainWindow(QMainWindow):
     """The ground station window over ``model``; ``flights_dir``: where recorded flights are listed from."""
 
-    COLUMNS = ["drone", "link", "state", "mode", "armed", "battery", "GPS", "pos ±m", "setpt Hz", "recorder",
-               "detector", "tracker", "warnings"]
+    #: the tracker (the drone's fused person estimate) and the warnings before the long recorder / detector texts,
+    #: so that they stay in view
+    COLUMNS = ["drone", "link", "state", "mode", "armed", "battery", "GPS", "pos ±m", "setpt Hz", "tracker",
+               "warnings", "recorder", "detector"]
 
     def __init__(self, model: FleetModel, cfg: GsConfig, title: str = "skycap ground station"):
         super().__init__()
@@ -425,18 +459,28 @@ class MainWindow(QMainWindow):
         self.map = MapView(self.model, self.cfg)
         self.map.clicked.connect(self.set_plan_centre)
         lay.addWidget(self.map, 3)
-        form_box = QGroupBox("Orbit plan")
+        form_box = QGroupBox("Plan")
         f = QFormLayout(form_box)
+        self.plan_mode = QComboBox()
+        for key, label in PLAN_MODES.items():
+            self.plan_mode.addItem(label, key)
+        self.plan_mode.setToolTip("Orbit: circle the centre. Tracking formation: the drones (agents in track mode) "
+                                  "find the person near the start guess and keep their slots around them")
+        self.plan_mode.currentIndexChanged.connect(self._plan_mode_changed)
+        f.addRow("plan", self.plan_mode)
         self.plan_fields: dict[str, QLineEdit] = {}
+        self.plan_labels: dict[str, QLabel] = {}
         for name, default in (("center_north_m", "0"), ("center_east_m", "0"), ("radius_m", "8"),
                               ("altitude_m", "6"), ("speed_m_s", "1.2"), ("min_separation_m", "3")):
             e = QLineEdit(default)
             e.textChanged.connect(self._preview)
             self.plan_fields[name] = e
-            f.addRow(name, e)
+            self.plan_labels[name] = QLabel(name)
+            f.addRow(self.plan_labels[name], e)
         self.direction = QComboBox()
         self.direction.addItems(["clockwise (1)", "anticlockwise (-1)"])
-        f.addRow("direction", self.direction)
+        self.direction_label = QLabel("direction")
+        f.addRow(self.direction_label, self.direction)
         self.plan_drones = QListWidget()
         self.plan_drones.setMaximumHeight(110)
         f.addRow("drones", self.plan_drones)
@@ -451,9 +495,36 @@ class MainWindow(QMainWindow):
         self.plan_acks.verticalHeader().hide()
         self.plan_acks.horizontalHeader().setStretchLastSection(True)
         f.addRow(self.plan_acks)
+        self.zones_label = QLabel(self._zones_text())
+        self.zones_label.setWordWrap(True)
+        f.addRow(self.zones_label)
         form_box.setMaximumWidth(330)
         lay.addWidget(form_box, 1)
         return w
+
+    def _zones_text(self) -> str:
+        g = self.cfg.geofence
+        zones = "; ".join(f"{z.name or 'zone ' + str(i + 1)}: {z.radius_m:g} m at ({z.north_m:g}, {z.east_m:g})"
+                          for i, z in enumerate(self.cfg.keepout_zones)) or "none"
+        return (f"Sent with the plan (local NED frame, metres from the origin): geofence {g.radius_m:g} m around the "
+                f"origin, altitude {g.min_altitude_m:g}-{g.max_altitude_m:g} m; keep-out zones: {zones}")
+
+    def set_plan_mode(self, mode: str) -> None:
+        """Choose the plan form's mode ("orbit" / "track"), as the operator's combo box does."""
+        self.plan_mode.setCurrentIndex(list(PLAN_MODES).index(mode))
+
+    def _plan_mode_changed(self, _=None) -> None:
+        track = self.plan_mode.currentData() == "track"
+        names = {"center_north_m": ("person start guess north_m" if track else "center_north_m"),
+                 "center_east_m": ("person start guess east_m" if track else "center_east_m"),
+                 "radius_m": ("stand-off radius_m" if track else "radius_m"),
+                 "altitude_m": "altitude_m", "speed_m_s": "speed_m_s", "min_separation_m": "min_separation_m"}
+        for name, text in names.items():
+            self.plan_labels[name].setText(text)
+        for w in (self.plan_fields["speed_m_s"], self.plan_labels["speed_m_s"], self.direction,
+                  self.direction_label):
+            w.setVisible(not track)
+        self._preview()
 
     def _checklist_tab(self) -> QWidget:
         w = QWidget()
@@ -595,7 +666,8 @@ class MainWindow(QMainWindow):
         from flightdata.folder import natural_key
 
         drones.sort(key=natural_key)  # slots in the fleet's order (the simulator spawns them so)
-        return PlanForm(direction=1 if self.direction.currentIndex() == 0 else -1, drones=drones, **vals), ""
+        return PlanForm(direction=1 if self.direction.currentIndex() == 0 else -1, drones=drones,
+                        mode=self.plan_mode.currentData(), **vals), ""
 
     def _preview(self) -> None:
         try:
@@ -618,7 +690,8 @@ class MainWindow(QMainWindow):
             self.plan_reason.setStyleSheet("QLabel { color: #c01e1e; font-weight: bold; }")
         else:
             self.plan_run = run
-            self.plan_reason.setText(f"plan {run.command_ids[run.targets[0]]} sent; waiting for each drone")
+            kind = "tracking formation" if form.mode == "track" else "orbit"
+            self.plan_reason.setText(f"{kind} plan {run.command_ids[run.targets[0]]} sent; waiting for each drone")
             self.plan_reason.setStyleSheet("QLabel { color: #14802a; }")
         self.refresh()
 
@@ -723,8 +796,9 @@ class MainWindow(QMainWindow):
                                                                         stale or (ORANGE if r.armed else None), r.armed),
                      (batt, batt_c, False), (f"{r.gps} ({r.satellites})", stale, False),
                      ("-" if r.position_std_m is None else f"{r.position_std_m:.2f}", stale, False),
-                     (f"{r.setpoint_hz:.0f}", stale, False), (r.recorder, stale, False), (r.detector, stale, False),
-                     (r.tracker, stale, False), ("; ".join(r.warnings), RED if r.warnings else stale, bool(r.warnings))]
+                     (f"{r.setpoint_hz:.0f}", stale, False), (r.tracker, stale, False),
+                     ("; ".join(r.warnings), RED if r.warnings else stale, bool(r.warnings)), (r.recorder, stale, False),
+                     (r.detector, stale, False)]
             for j, (text, colour, bold) in enumerate(cells):
                 cur = self.table.item(i, j)
                 if cur is None or cur.text() != text or cur.foreground().color() != (colour or QColor()):
@@ -744,6 +818,7 @@ class MainWindow(QMainWindow):
             self.results_title.setText(f"{ACTIONS.get(self.last_run.action, self.last_run.action)} to "
                                        f"{', '.join(self.last_run.targets)}")
         self._fill_results(self.plan_acks, self.plan_run)
+        self._plan_outcome()
         if self.tabs.currentIndex() == 1:
             self._fill_checklist(rows)
         alerts = m.alerts()
@@ -762,6 +837,22 @@ class MainWindow(QMainWindow):
             if m.live_skeleton_ned is not None or self.view3d.live_skeleton_ned is not None:
                 self.view3d.set_live_skeleton(m.live_skeleton_ned)
             self.view3d.update()
+
+    def _plan_outcome(self) -> None:
+        """Once every drone answered the plan: who accepted it and who refused it, with each whole reason."""
+        run = self.plan_run
+        if run is None or getattr(run, "_outcome_shown", False) or not run.done(list(self.model.client.acks),
+                                                                                  self.model.clock()):
+            return
+        run._outcome_shown = True  # type: ignore[attr-defined]
+        res = self.model.results(run)
+        ok = [d for d, (r, _) in res.items() if r == "accepted"]
+        bad = {d: (r, why) for d, (r, why) in res.items() if r != "accepted"}
+        text = f"plan {run.command_ids[run.targets[0]]}: accepted by {', '.join(ok) or 'no drone'}"
+        if bad:
+            text += "; " + "; ".join(f"{r.upper()} by {d}: {why}" for d, (r, why) in sorted(bad.items()))
+        self.plan_reason.setText(text)
+        self.plan_reason.setStyleSheet("QLabel { color: %s; font-weight: bold; }" % ("#c01e1e" if bad else "#14802a"))
 
     def _fill_results(self, table: QTableWidget, run: CommandRun | None) -> None:
         if run is None:

@@ -22,10 +22,11 @@ from onboard.agent.failsafes import FormationFailsafes
 from onboard.agent.teammates import Teammates
 from onboard.agent.tracking import TrackingCapture
 from onboard.config import AgentConfig
-from onboard.formation.mpc import FormationMPC, MpcConfig, MpcResult, SharedPlan
+from onboard.formation.mpc import Cylinder, FormationMPC, MpcConfig, MpcResult, SharedPlan
 from onboard.formation.source import FormationSource
 from onboard.mission import Mission
 from onboard.setpoint import Setpoint, SetpointSource
+from onboard.zones import fence_polygon_ne
 from onboard.tracking.measurement import PERSON_HEIGHT_PRIOR_M
 from shared_msgs import FormationPlan, Message, OrbitPlan, VehicleState, keys
 from skycap.frames import yaw_from_quat_wxyz
@@ -36,13 +37,22 @@ __all__ = ["FormationFlight", "mpc_config"]
 
 
 def mpc_config(cfg: AgentConfig, plan: OrbitPlan) -> MpcConfig:
-    """The formation MPC's configuration: the agent's ``track`` and ``safety`` sections and the plan."""
+    """The formation MPC's configuration: the agent's ``track`` and ``safety`` sections and the plan (with its
+    geofence as the MPC's fence polygon, :func:`onboard.zones.fence_polygon_ne`, and its keep-out zones as
+    obstacles)."""
     t = cfg.track
-    return MpcConfig(horizon_steps=t.mpc_horizon_steps, dt_s=t.mpc_dt_s, radius_m=plan.radius_m,
-                     altitude_m=plan.altitude_m, min_separation_m=plan.min_separation_m,
+    fence = fence_polygon_ne(plan.geofence) if plan.geofence is not None else ()
+    obstacles = tuple(Cylinder(z.north_m, z.east_m, z.radius_m) for z in plan.keepout_zones)
+    if plan.geofence is not None:
+        # the fence's ceiling bounds the MPC's altitude band too
+        max_alt = min(max(cfg.safety.max_altitude_m, plan.altitude_m + 1.0), plan.geofence.max_altitude_m)
+    else:
+        max_alt = max(cfg.safety.max_altitude_m, plan.altitude_m + 1.0)
+    return MpcConfig(geofence_ne_m=fence, obstacles=obstacles, horizon_steps=t.mpc_horizon_steps, dt_s=t.mpc_dt_s,
+                     radius_m=plan.radius_m, altitude_m=plan.altitude_m, min_separation_m=plan.min_separation_m,
                      max_speed_h_m_s=min(t.max_speed_h_m_s, plan.max_speed_m_s),
                      min_altitude_m=min(cfg.safety.min_altitude_m, plan.altitude_m),
-                     max_altitude_m=max(cfg.safety.max_altitude_m, plan.altitude_m + 1.0),
+                     max_altitude_m=max(max_alt, plan.altitude_m + 1e-3),
                      person_keepout_m=min(t.person_keepout_m, 0.75 * plan.radius_m))
 
 

@@ -68,6 +68,7 @@ from onboard.config import AgentConfig
 from onboard.mission import Action, Mission, State, validate_command, validate_plan
 from onboard.orbit import OrbitController
 from onboard.setpoint import HoldSource, Setpoint, SetpointSource
+from onboard.zones import clamp_setpoint
 from onboard.camera.pose import CameraPoser
 from shared_msgs import (
     CameraFrame,
@@ -145,6 +146,8 @@ class Agent:
         self._sp_times: collections.deque[float] = collections.deque(maxlen=400)
         self._gimbal_task: asyncio.Task | None = None
         self.gimbal_watch = GimbalWatch()
+        self.zone_clamps = 0  #: setpoints moved out of a keep-out zone / into the fence (:meth:`keep_in_zones`)
+        self._zone_warned: set[tuple[str, str]] = set()  #: (plan id, zone) already warned about
         self.supervisor = VehicleSupervisor(cfg, self.mission, autopilot, self.teammates, failsafe=self._failsafe,
                                             stop_setpoints=self._stop_setpoints, resume_offboard=self._resume_offboard,
                                             setpoints_flowing=self._setpoints_flowing, warn=self.warnings.append,
@@ -258,7 +261,7 @@ class Agent:
                 plan.header.t_sent_ns == self.mission.plan.header.t_sent_ns:
             return  # the same plan again (live + query)
         log.info("%s: orbit plan %s from %s", self.id, plan.plan_id, self._sender(rx))
-        reason = validate_plan(plan, self.id, self.cfg.safety, rx.t_received_ns)
+        reason = validate_plan(plan, self.id, self.cfg.safety, rx.t_received_ns, mode=self.cfg.mode)
         if reason is not None:
             self.ack(plan.plan_id, "refused", reason)
             return
@@ -381,11 +384,35 @@ class Agent:
     # --- loops ----------------------------------------------------------------------------------------
     def next_setpoint(self, src: SetpointSource, t_s: float, st: VehicleState) -> Setpoint:
         """One control step of ``src``: through the formation (track mode: estimate, failsafes, MPC, shared
-        plan), or the source alone (orbit mode)."""
+        plan), or the source alone (orbit mode); then kept out of the plan's keep-out zones and inside its fence
+        (:meth:`keep_in_zones`)."""
         if self.formation is not None:
-            return self.formation.step(src, t_s, st)
-        return src.update(t_s, np.asarray(st.position_ned_m), np.asarray(st.velocity_ned_m_s),
-                          yaw_from_quat_wxyz(st.q_world_body))
+            sp = self.formation.step(src, t_s, st)
+        else:
+            sp = src.update(t_s, np.asarray(st.position_ned_m), np.asarray(st.velocity_ned_m_s),
+                            yaw_from_quat_wxyz(st.q_world_body))
+        return self.keep_in_zones(sp)
+
+    def keep_in_zones(self, sp: Setpoint) -> Setpoint:
+        """The plan's geofence and keep-out zones on the setpoint (:func:`onboard.zones.clamp_setpoint`): a setpoint
+        in a zone or outside the fence is moved to its edge; each zone that clamps warns once per plan (health
+        warning, log) and every clamped setpoint is counted (``zone_clamps``)."""
+        plan = self.mission.plan
+        if plan is None or (plan.geofence is None and not plan.keepout_zones):
+            return sp
+        p, v, what = clamp_setpoint(sp.position_ned_m, sp.velocity_ned_m_s, plan.geofence, plan.keepout_zones)
+        if not what:
+            return sp
+        self.zone_clamps += 1
+        for w in what:
+            key = (plan.plan_id, w)
+            if key not in self._zone_warned:
+                self._zone_warned.add(key)
+                text = f"setpoint clamped: it would have entered {w}" if w.startswith("keep-out") else \
+                    f"setpoint clamped: it would have left the {w}"
+                log.warning("%s: %s (plan %s)", self.id, text, plan.plan_id)
+                self.warnings.append(text)
+        return Setpoint(p, v, sp.yaw_rad, sp.gimbal_pitch_rad, np.zeros(3))
 
     async def control_loop(self) -> None:
         period = 1.0 / self.cfg.rates.setpoint_hz

@@ -98,6 +98,25 @@ def test_plan_field_refusals_name_the_problem_and_send_nothing(gs, qtbot):
     assert session.model.plan is None and len(session.client.acks) == n_acks  # nothing was sent
 
 
+def test_the_agents_refuse_a_plan_through_a_keepout_zone_sent_around_the_apps_checks(gs, qtbot):
+    """The zones travel with the plan and the agents enforce them: a plan whose orbit crosses a keep-out zone,
+    published past the app's own check, is refused by each agent with the zone named in its ack."""
+    import msgspec
+
+    from groundstation.fleet import make_orbit_plan
+    from shared_msgs import GeofenceZone, KeepOutZone, keys
+
+    session, win = gs
+    plan = make_orbit_plan(IDS, radius_m=8.0, geofence=GeofenceZone(radius_m=30.0))
+    plan = msgspec.structs.replace(plan, keepout_zones=[KeepOutZone(name="shed", north_m=8.0, east_m=0.0,
+                                                                    radius_m=2.0)])
+    session.bus.publish(keys.gcs_key(session.cfg.fleet, keys.PLAN), plan)
+    acks = session.client.wait_acks(plan.plan_id, IDS, 8.0, ("accepted", "refused"))
+    assert set(acks) == set(IDS), acks
+    for a in acks.values():
+        assert a.result == "refused" and "keep-out zone 'shed': the orbit" in a.reason, a
+
+
 def test_plan_centre_by_click_and_each_drone_accepts(gs, qtbot):
     session, win = gs
     win.show_tab("Map / plan")

@@ -102,3 +102,20 @@ def test_health_version_1_decodes_as_version_2_with_recorder_and_detector_not_re
     v2 = decode(encode(ex), Health)
     assert isinstance(v2.recorder, RecorderStatus) and v2.recorder.free_disk_bytes == 8_589_934_592
     assert isinstance(v2.detector, DetectorStatus) and v2.detector.loaded and v2.detector.model == "yolox_s_person.onnx"
+
+
+def test_orbit_plan_version_1_decodes_as_version_2_without_mode_fence_or_zones() -> None:
+    """OrbitPlan version 1 (before ``mode``, ``geofence`` and ``keepout_zones``) decodes with mode "" (each agent
+    flies it in its own mode), no fence and no zones; version 2 round-trips the fence and the zones."""
+    from shared_msgs import GeofenceZone, KeepOutZone, OrbitPlan
+
+    old = (GOLDEN_DIR / "older" / "orbit_plan.v1.msgpack").read_bytes()
+    assert msgspec.msgpack.decode(old)["header"]["schema_version"] == 1
+    msg = decode(old, OrbitPlan)
+    assert msg.header.schema_version == OrbitPlan.SCHEMA_VERSION == 2
+    assert msg.mode == "" and msg.geofence is None and msg.keepout_zones == []
+    ex = EXAMPLES["orbit_plan"]
+    assert msg.phase_offset_rad == ex.phase_offset_rad and msg.radius_m == ex.radius_m
+    v2 = decode(encode(ex), OrbitPlan)
+    assert v2.mode == "track" and isinstance(v2.geofence, GeofenceZone) and v2.geofence.radius_m == 40.0
+    assert isinstance(v2.keepout_zones[0], KeepOutZone) and v2.keepout_zones[0].name == "tree line"

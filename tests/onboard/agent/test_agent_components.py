@@ -10,6 +10,7 @@ import math
 import time
 
 import numpy as np
+import pytest
 
 from flightdata.recorder import channel_name
 from groundstation.fleet import make_orbit_plan
@@ -463,3 +464,30 @@ def test_statistics_sum_the_subscriptions_counters():
                                       "fault_delayed": 2}
     assert malformed_detections(subs, None) == {"refused_by_codec": 3, "invalid_content": 0,
                                                 "nonfinite_measurements": 0, "total": 3}
+
+
+def test_the_agent_keeps_every_setpoint_out_of_the_plans_zones_and_warns_once():
+    from shared_msgs import GeofenceZone, KeepOutZone
+
+    plan = make_orbit_plan(["drone_1"], (0.0, 0.0, 0.0), 8.0, 6.0, 0.2, 1)
+    import msgspec
+
+    plan = msgspec.structs.replace(plan, geofence=GeofenceZone(radius_m=30.0),
+                                   keepout_zones=[KeepOutZone(name="shed", north_m=0.0, east_m=0.0, radius_m=3.0)])
+    agent = Agent(AgentConfig(drone_id="drone_1", fleet="f"), FakeBus(), FakeAutopilot())
+    agent.mission.set_plan(plan)
+    st = _state("drone_1", (1.0, 0.0, -6.0), int(time.time() * 1e9))
+    into = HoldSource((1.0, 0.0, -6.0), 0.0)  # a setpoint inside the shed's zone
+    for _ in range(3):
+        sp = agent.next_setpoint(into, time.time(), st)
+        assert math.hypot(sp.position_ned_m[0], sp.position_ned_m[1]) == pytest.approx(3.5)
+    assert agent.zone_clamps == 3
+    assert agent.warnings == ["setpoint clamped: it would have entered keep-out zone 'shed'"]
+    away = HoldSource((10.0, 0.0, -6.0), 0.0)  # fine: untouched
+    np.testing.assert_array_equal(agent.next_setpoint(away, time.time(), st).position_ned_m, [10.0, 0.0, -6.0])
+    assert agent.zone_clamps == 3
+    # a track-mode agent: its setpoints pass the same clamp (after the formation's step)
+    track = Agent(AgentConfig(drone_id="drone_1", fleet="f", mode="track"), FakeBus(), FakeAutopilot())
+    track.mission.set_plan(msgspec.structs.replace(plan, mode="track", angular_speed_rad_s=0.0))
+    sp = track.next_setpoint(into, time.time(), st)
+    assert math.hypot(sp.position_ned_m[0], sp.position_ned_m[1]) == pytest.approx(3.5) and track.zone_clamps == 1
