@@ -10,6 +10,10 @@ step (render + JPEG + simulated detectors + messages, as :class:`CameraNode.step
 ``--cameras`` cameras at ``--rate`` Hz cost in CPU cores. Single process, OpenCV threads as configured
 (``--cv-threads``, default 1: one camera process per drone on a shared machine).
 
+``--realtime S`` instead runs ``--cameras`` :class:`CameraNode` loops (one process each, as the demo runs
+them) at ``--rate`` Hz for S seconds at the first size, with the orbiting drone's truth, and prints the
+frames each delivered against the schedule, the late ones and the CPU per frame.
+
 ``--keypoints N`` instead renders N frames of varied views (distance 4-12 m, height 1.5-8 m, any
 azimuth, any time of the person's loop, body seeds 0..5 for the Anny person) at the first size, runs the
 shipped keypoint models on each with the true body box, and prints per model the median error of the
@@ -51,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--person-model", default="ellipsoids", choices=("ellipsoids", "anny"))
     ap.add_argument("--blur", type=float, default=0.0, help="camera.blur_sigma_px")
     ap.add_argument("--noise", type=float, default=0.0, help="camera.noise_std")
+    ap.add_argument("--realtime", type=float, default=0.0,
+                    help="run --cameras camera nodes (one process each) at --rate for this many seconds instead")
     ap.add_argument("--keypoints", type=int, default=0, help="measure the keypoint models on N frames instead")
     ap.add_argument("--models", default="movenet_lightning,movenet_thunder,blazepose_full")
     ap.add_argument("--save", default="", help="with --keypoints: write a contact sheet of the first frames here")
@@ -58,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(args.cv_threads)
     if args.keypoints:
         return keypoint_error(args)
+    if args.realtime:
+        return realtime(args)
     person = PersonSim()
     print(f"machine: {_machine()}")
     print(f"person model: {args.person_model}, blur {args.blur} px, noise {args.noise}")
@@ -111,6 +119,53 @@ def main(argv: list[str] | None = None) -> int:
             f"{size:>10} {m['ground_ms']:7.1f} {m['shadow_ms']:7.1f} {m['person_ms']:7.1f} {m['total_ms']:7.1f} "
             f"{m['jpeg']:6.1f} {m['step']:6.1f} {m['step_cpu']:7.1f} {m['kb']:8.1f} {m['hpx']:9.0f}  {cores:5.2f} cores"
         )
+    return 0
+
+
+def _realtime_camera(args, w: int, h: int, k: int, out) -> None:
+    import threading
+
+    cv2.setNumThreads(args.cv_threads)
+    cfg = SceneConfig(camera=CameraConfig(width_px=w, height_px=h, rate_hz=args.rate, person_model=args.person_model,
+                                          blur_sigma_px=args.blur, noise_std=args.noise))
+    person = PersonSim()
+    t_start = time.monotonic()
+
+    def truth() -> CameraTruth:
+        t = time.monotonic() - t_start
+        a = 0.25 * t + k * 2.0944
+        pos = np.array([8 * math.cos(a), 8 * math.sin(a), -4.0])
+        x, y, z, qw = Rotation.from_euler("ZYX", [math.atan2(-pos[1], -pos[0]), 0, 0]).as_quat()
+        q = np.array([qw, x, y, z])
+        return CameraTruth(int(t * 1e9), pos, q, -math.atan2(3.0, 8.0), person.state_at(t).joints_ned_m, pos, q)
+
+    node = CameraNode(f"drone_{k + 1}", cfg, truth, lambda topic, msg: None)
+    stop = threading.Event()
+    threading.Timer(args.realtime, stop.set).start()
+    node.run(stop)
+    out.put((k, dict(node.stats)))
+
+
+def realtime(args) -> int:
+    """``--cameras`` camera processes at ``--rate`` for ``--realtime`` seconds (see the module doc)."""
+    import multiprocessing as mp
+
+    w, h = (int(v) for v in args.sizes.split(",")[0].lower().split("x"))
+    q = mp.get_context("spawn").Queue()
+    procs = [mp.get_context("spawn").Process(target=_realtime_camera, args=(args, w, h, k, q)) for k in range(args.cameras)]
+    for p in procs:
+        p.start()
+    res = dict(q.get() for _ in procs)
+    for p in procs:
+        p.join()
+    print(f"machine: {_machine()}")
+    print(f"{args.cameras} camera processes, {args.person_model} at {w}x{h}, {args.rate:g} Hz for {args.realtime:g} s "
+          f"(blur {args.blur} px, noise {args.noise}); expected {args.rate * args.realtime:.0f} frames each")
+    for k in sorted(res):
+        st = res[k]
+        n = max(st["frames"], 1)
+        print(f"  camera {k + 1}: {st['frames']} frames, {st['late_frames']} late, {st['cpu_ms_sum'] / n:.1f} ms CPU "
+              f"and {st['render_ms_sum'] / n:.1f} ms wall render per frame")
     return 0
 
 

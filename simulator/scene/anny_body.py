@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from pathlib import Path
 
 import numpy as np
@@ -66,36 +67,35 @@ class AnnyBodyError(SkycapError):
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
+    if v.ndim == 1:  # the per-frame path: 3-vectors, without numpy's per-call overhead
+        n = math.sqrt(float(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
+        return v / max(n, 1e-9)
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two 3-vectors (np.cross costs ~10x more on single vectors)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def _frame(left: np.ndarray, up: np.ndarray) -> np.ndarray:
     """Rotation (3, 3) with columns (left, back, up) from a left and an up direction (up kept)."""
     u = _unit(up)
-    l_ = _unit(left - u * np.dot(left, u))
-    back = np.cross(u, l_)  # x = left, z = up -> y = z cross x = back (Anny's right-handed body frame)
+    l_ = _unit(left - u * float(left @ u))
+    back = _cross(u, l_)  # x = left, z = up -> y = z cross x = back (Anny's right-handed body frame)
     return np.stack([l_, back, u], axis=1)
 
 
 def _swing(u0: np.ndarray, u1: np.ndarray) -> np.ndarray:
     """The minimal rotation (3, 3) taking unit vector u0 to unit vector u1."""
-    v = np.cross(u0, u1)
-    c = float(np.dot(u0, u1))
+    v = _cross(u0, u1)
+    c = float(u0 @ u1)
     if c < -0.999999:  # opposite: any perpendicular axis
         a = np.cross(u0, [1.0, 0.0, 0.0] if abs(u0[0]) < 0.9 else [0.0, 1.0, 0.0])
         a = _unit(a)
         return 2.0 * np.outer(a, a) - np.eye(3)
     K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
     return np.eye(3) + K + K @ K / (1.0 + c)
-
-
-def _face_points(eye_l: np.ndarray, eye_r: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nose, left ear, right ear from the eyes and the head's up direction (as mocap_to_coco17)."""
-    mid = 0.5 * (eye_l + eye_r)
-    left = _unit(eye_l - eye_r)
-    up = _unit(up - left * np.dot(up, left))
-    fwd = np.cross(left, up)  # x left, z up -> forward = up x left ... (sign checked by the caller)
-    return mid + 0.02 * fwd - 0.04 * up, mid + 0.075 * left - 0.08 * fwd - 0.01 * up, mid - 0.075 * left - 0.08 * fwd - 0.01 * up
 
 
 @dataclasses.dataclass
@@ -127,7 +127,7 @@ class AnnyPerson:
         # head: left from the ears (or eyes), forward from the ears to the nose; up = left x forward ... via _frame
         h_left = (j[3] - j[4]) + (j[1] - j[2])
         h_fwd = j[0] - ear_mid
-        h_up = np.cross(_unit(h_fwd), _unit(h_left))  # forward x left = up (x left, -y forward, z up)
+        h_up = _cross(_unit(h_fwd), _unit(h_left))  # forward x left = up (x left, -y forward, z up)
         return {
             "pelvis": (_frame(j[11] - j[12], up), hip_mid, float(np.linalg.norm(j[11] - j[12])), L),
             "chest": (_frame(j[5] - j[6], up), sh_mid, float(np.linalg.norm(j[5] - j[6])), L),
@@ -158,11 +158,11 @@ class AnnyPerson:
             u_r = _unit(r[b] - r[a])
             u_c = Q[p] @ u_r
             d = j[b] - j[a]
-            L1 = float(np.linalg.norm(d))
+            L1 = math.sqrt(float(d @ d))
             u_t = _unit(d) if L1 > 1e-6 else u_c
             Q[s] = _swing(u_c, u_t) @ Q[p]
             stretch = float(np.clip(L1 / max(self._rest_len[s], 1e-6), 0.6, 1.6))
-            M = Q[s] @ (np.eye(3) + (stretch - 1.0) * np.outer(u_r, u_r))
+            M = Q[s] + (stretch - 1.0) * np.outer(Q[s] @ u_r, u_r)
             A[s, :, :3] = M
             A[s, :, 3] = j[a] - M @ r[a]
         return A
