@@ -92,6 +92,10 @@ class PersonConfig:
         return self
 
 
+#: (camera.blur_sigma_px, camera.noise_std) that ``-1`` stands for, per person model
+CAMERA_EFFECT_DEFAULTS: dict[str, tuple[float, float]] = {"ellipsoids": (0.0, 0.0), "anny": (0.6, 2.0)}
+
+
 @dataclass
 class CameraConfig:
     """A pinhole camera (no distortion) on a pitch gimbal or a fixed mount, rendered by the simulator."""
@@ -122,10 +126,16 @@ class CameraConfig:
     #: mesh with clothing colours, for the real keypoint models; see simulator/scene/anny_body.py)
     person_model: str = "ellipsoids"
     #: optics and sensor: Gaussian blur (sigma, px; 0 = none) and additive sensor noise (std, 0..255 levels;
-    #: 0 = none), applied to the whole image; the noise is reproducible from ``noise_seed``
-    blur_sigma_px: float = 0.0
-    noise_std: float = 0.0
+    #: 0 = none), applied to the whole image; the noise is reproducible from ``noise_seed``.
+    #: -1 = the person model's default: none with "ellipsoids" (as before), 0.6 px and 2 levels with "anny"
+    blur_sigma_px: float = -1.0
+    noise_std: float = -1.0
     noise_seed: int = 0
+
+    def camera_effects(self) -> tuple[float, float]:
+        """(blur sigma px, noise std levels) in effect, the ``-1`` defaults resolved."""
+        blur, noise = CAMERA_EFFECT_DEFAULTS.get(self.person_model, (0.0, 0.0))
+        return (blur if self.blur_sigma_px < 0 else self.blur_sigma_px, noise if self.noise_std < 0 else self.noise_std)
 
     def validate(self) -> "CameraConfig":
         if not (16 <= self.width_px <= 8192 and 16 <= self.height_px <= 8192):
@@ -142,8 +152,10 @@ class CameraConfig:
             raise ConfigError("camera.lever_arm_body_m must be [forward_m, right_m, down_m]")
         if self.person_model not in ("ellipsoids", "anny"):
             raise ConfigError(f"camera.person_model={self.person_model!r}; use 'ellipsoids' or 'anny'")
-        if not 0.0 <= self.blur_sigma_px <= 10.0 or not 0.0 <= self.noise_std <= 50.0:
-            raise ConfigError("camera.blur_sigma_px must be in 0..10 px and camera.noise_std in 0..50 levels")
+        if not (self.blur_sigma_px == -1.0 or 0.0 <= self.blur_sigma_px <= 10.0):
+            raise ConfigError(f"camera.blur_sigma_px={self.blur_sigma_px} must be in 0..10 px (or -1: the default)")
+        if not (self.noise_std == -1.0 or 0.0 <= self.noise_std <= 50.0):
+            raise ConfigError(f"camera.noise_std={self.noise_std} must be in 0..50 levels (or -1: the default)")
         return self
 
 

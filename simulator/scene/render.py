@@ -28,8 +28,8 @@ shaded (Lambert from the sun + ambient sky light, per-vertex normals), its shado
 along the sun onto the ground (rasterised at half resolution, softened). The ground truth (joints,
 visibility, occlusion by the body) is the same; the box is the mesh's projected box.
 
-Camera effects on the finished image (both models): Gaussian blur ``camera.blur_sigma_px`` and additive
-sensor noise ``camera.noise_std`` (a pre-drawn noise pool, randomly shifted per frame: reproducible
+Camera effects on the finished image (both models; by default only with the Anny person): Gaussian blur
+``camera.blur_sigma_px`` and additive sensor noise ``camera.noise_std`` (a pre-drawn noise pool, randomly shifted per frame: reproducible
 from ``camera.noise_seed``, cheap).
 """
 
@@ -138,8 +138,7 @@ class Renderer:
         self._grid_x = X.astype(np.float32)
         self._grid_y = Y.astype(np.float32)
         self.person_model = cam_cfg.person_model
-        self.blur_sigma_px = float(cam_cfg.blur_sigma_px)
-        self.noise_std = float(cam_cfg.noise_std)
+        self.blur_sigma_px, self.noise_std = (float(v) for v in cam_cfg.camera_effects())
         self._noise_rng = np.random.default_rng(cam_cfg.noise_seed)
         self._noise_pool: np.ndarray | None = None
         self.anny = None

@@ -31,7 +31,7 @@ def _view(cc: CameraConfig, root: np.ndarray, radius_m: float, height_m: float, 
 
 @pytest.fixture(scope="module")
 def scene():
-    cc = CameraConfig(width_px=SIZE[0], height_px=SIZE[1], person_model="anny")
+    cc = CameraConfig(width_px=SIZE[0], height_px=SIZE[1], person_model="anny", blur_sigma_px=0.0, noise_std=0.0)
     cam = PinholeCamera.from_config(cc)
     st = PersonSim().state_at(1.3)  # walking
     T = _view(cc, st.root_ned_m, 5.0, 2.5, 0.8)
@@ -138,7 +138,7 @@ def test_config_selects_and_validates_the_person_model():
     with pytest.raises(ConfigError, match="person_model"):
         SceneConfig(camera=CameraConfig(person_model="mesh")).validate()
     with pytest.raises(ConfigError, match="noise_std"):
-        CameraConfig(noise_std=-1.0).validate()
+        CameraConfig(noise_std=-2.0).validate()
     r = Renderer(PinholeCamera.from_config(CameraConfig()), CameraConfig(), PersonConfig())
     assert r.anny is None  # the default stays the ellipsoid person
 
@@ -147,7 +147,8 @@ def test_real_keypoint_model_finds_the_joints(scene):
     from reconstruction.keypoints.detectors import load_model
 
     model = load_model("movenet_thunder")
-    cc, cam = scene["cc"], scene["cam"]
+    cc = CameraConfig(width_px=SIZE[0], height_px=SIZE[1], person_model="anny")  # with its blur and noise
+    cam = PinholeCamera.from_config(cc)
     sim = PersonSim()
     errs = []
     for k, (t, az) in enumerate(((1.3, 0.8), (4.0, 2.5), (9.0, 4.2))):  # walking, standing, jumping
@@ -161,3 +162,11 @@ def test_real_keypoint_model_finds_the_joints(scene):
     e = np.concatenate(errs)
     assert np.median(e) < 0.05, f"median error {np.median(e):.3f} of the box height"
     assert np.mean(e < 0.15) > 0.85
+
+
+def test_camera_effects_default_per_person_model():
+    assert CameraConfig().camera_effects() == (0.0, 0.0)  # the ellipsoid person renders as before
+    assert CameraConfig(person_model="anny").camera_effects() == (0.6, 2.0)
+    assert CameraConfig(person_model="anny", blur_sigma_px=0.0, noise_std=1.0).camera_effects() == (0.0, 1.0)
+    with pytest.raises(ConfigError, match="blur_sigma_px"):
+        CameraConfig(blur_sigma_px=-0.5).validate()
