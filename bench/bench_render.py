@@ -217,18 +217,26 @@ def keypoint_error(args) -> int:
             crop = cv2.copyMakeBorder(img, s_, s_, s_, s_, cv2.BORDER_CONSTANT)[cy : cy + 2 * s_, cx : cx + 2 * s_]
             tiles.append(cv2.resize(crop, (192, 192)))
         cv2.imwrite(args.save, np.hstack(tiles))
+    from skycap.skeleton import JOINT_GROUPS
+
+    print(f"{'':>18}  per joint group (median %): " + " ".join(f"{g:>8}" for g in JOINT_GROUPS))
     for name in args.models.split(","):
         model = load_model(name)
         errs = []
+        per_joint: list[list[float]] = [[] for _ in range(17)]
         for img, g in frames:
             b = g.box_px
             kp = model.predict([img], np.array([[b[0], b[1], b[2] - b[0], b[3] - b[1]]]))[0]
             e = np.linalg.norm(kp[:, :2] - g.uv_px, axis=1) / (b[3] - b[1]) * 100.0
             errs.append(e[g.visible])
+            for jj in np.nonzero(g.visible)[0]:
+                per_joint[jj].append(e[jj])
         e = np.concatenate(errs)
         per_frame = np.array([np.median(x) for x in errs])
         print(f"{name:>18}: median {np.median(e):5.2f} % of box height, p90 {np.percentile(e, 90):5.1f} %, "
               f"{100 * np.mean(e < 5):4.0f} % of joints under 5 %, frame medians {np.median(per_frame):.2f} %")
+        groups = [np.median(sum((per_joint[jj] for jj in js), [])) for js in JOINT_GROUPS.values()]
+        print(f"{'':>18}  {'':>27} " + " ".join(f"{v:8.2f}" for v in groups))
     return 0
 
 

@@ -313,10 +313,8 @@ class AnnyBodies:
         v = self.rest_vertices[k]
         n = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
         c = v[faces].mean(1)
-        seg = np.argmax(self.segment_weights[faces[:, 0]], axis=1)
         if np.mean(np.sum(n * (c - v.mean(0)), axis=1) > 0) < 0.5:
             faces = faces[:, [0, 2, 1]]
-        del seg
         ph = {l_: float(x) for l_, x in zip(self.phenotype_labels, self.phenotypes[k])}
         return AnnyPerson(v.copy(), self.rest_joints(k), faces.copy(), self.segment_weights.copy(), mat,
                           np.clip(bgr, 0, 255).astype(np.float32), k, ph)  # fmt: skip

@@ -170,3 +170,26 @@ def test_camera_effects_default_per_person_model():
     assert CameraConfig(person_model="anny", blur_sigma_px=0.0, noise_std=1.0).camera_effects() == (0.0, 1.0)
     with pytest.raises(ConfigError, match="blur_sigma_px"):
         CameraConfig(blur_sigma_px=-0.5).validate()
+
+
+def test_camera_node_renders_the_anny_person(scene):
+    from shared_msgs import keys
+    from simulator.scene.camera_node import SIM_KEYPOINTS2D_GT, CameraNode, CameraTruth
+
+    cfg = SceneConfig(camera=CameraConfig(width_px=320, height_px=180, person_model="anny"), person=PersonConfig(body_seed=7))
+    st = scene["st"]
+    pos = np.array([st.root_ned_m[0] - 6.0, st.root_ned_m[1], -3.0])
+    truth = CameraTruth(1_000_000_000, pos, np.array([1.0, 0.0, 0.0, 0.0]), -math.atan2(2.1, 6.0), st.joints_ned_m)
+    node = CameraNode("drone_1", cfg, lambda: truth, lambda topic, msg: None)
+    assert node.renderer.anny is not None
+    out = node.step()
+    img = cv2.imdecode(np.frombuffer(out[keys.CAMERA_IMAGE].data, np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (180, 320, 3)
+    gt = out[SIM_KEYPOINTS2D_GT].persons[0]
+    b = gt.box
+    assert 40 < b.y_max_px - b.y_min_px < 150
+    # the person is in the box: its pixels differ from the empty scene's there
+    T = camera_pose(cfg.camera, pos, truth.q_world_body, truth.gimbal_pitch_rad)
+    empty = Renderer(node.cam, cfg.camera, cfg.person).render(T, None).image
+    roi = (slice(int(b.y_min_px), int(b.y_max_px)), slice(int(b.x_min_px), int(b.x_max_px)))
+    assert np.mean(np.abs(img[roi].astype(int) - empty[roi].astype(int)).sum(-1) > 40) > 0.2
