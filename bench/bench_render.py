@@ -53,8 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cameras", type=int, default=3)
     ap.add_argument("--cv-threads", type=int, default=1)
     ap.add_argument("--person-model", default="ellipsoids", choices=("ellipsoids", "anny"))
-    ap.add_argument("--blur", type=float, default=0.0, help="camera.blur_sigma_px")
-    ap.add_argument("--noise", type=float, default=0.0, help="camera.noise_std")
+    ap.add_argument("--blur", type=float, default=-1.0, help="camera.blur_sigma_px (-1: the person model's default)")
+    ap.add_argument("--noise", type=float, default=-1.0, help="camera.noise_std (-1: the person model's default)")
     ap.add_argument("--realtime", type=float, default=0.0,
                     help="run --cameras camera nodes (one process each) at --rate for this many seconds instead")
     ap.add_argument("--keypoints", type=int, default=0, help="measure the keypoint models on N frames instead")
@@ -205,7 +205,8 @@ def keypoint_error(args) -> int:
             continue
         frames.append((fr.image, gt))
     print(f"machine: {_machine()}")
-    print(f"person model {args.person_model} at {w}x{h}, blur {args.blur} px, noise {args.noise}: {len(frames)} usable "
+    blur, noise = cc.camera_effects()
+    print(f"person model {args.person_model} at {w}x{h}, blur {blur} px, noise {noise}: {len(frames)} usable "
           f"frames of {args.keypoints}; render median {np.median(t_render):.1f} ms (wall)")
     heights = np.array([g.box_px[3] - g.box_px[1] for _, g in frames])
     print(f"box height px: median {np.median(heights):.0f}, range {heights.min():.0f}-{heights.max():.0f}")
