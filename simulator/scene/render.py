@@ -26,7 +26,11 @@ How (per frame):
 z-buffer (:mod:`simulator.scene.anny_raster`) in the person's box at the same supersampling, Gouraud-
 shaded (Lambert from the sun + ambient sky light, per-vertex normals), its shadow the mesh projected
 along the sun onto the ground (rasterised at half resolution, softened). The ground truth (joints,
-visibility, occlusion by the body) is the same; the box is the mesh's projected box.
+visibility, occlusion by the body) is the same; the box is the mesh's projected box. Cost
+(``bench/bench_render.py --person-model anny``, 640x360, 2 loaded cores): a whole camera step takes about
+24 ms of CPU against 20 ms with the ellipsoids (3 cameras at 10 Hz: 0.72 against 0.60 cores). Every frame
+is a function of the truth (vehicle pose, gimbal, person joints) and the seeds, so a recorded truth can
+also be rendered again offline.
 
 Camera effects on the finished image (both models; by default only with the Anny person): Gaussian blur
 ``camera.blur_sigma_px`` and additive sensor noise ``camera.noise_std`` (a pre-drawn noise pool, randomly shifted per frame: reproducible
