@@ -62,6 +62,11 @@ class PersonConfig:
     skin_bgr: list[int] = field(default_factory=lambda: [120, 150, 200])
     shoes_bgr: list[int] = field(default_factory=lambda: [40, 40, 40])
     hair_bgr: list[int] = field(default_factory=lambda: [30, 45, 70])
+    #: the Anny body (``camera.person_model = "anny"``): the seed picks the body shape (one of the baked
+    #: Anny phenotypes) and the outfit's colours; one seed per flight, the same for every camera
+    body_seed: int = 0
+    #: the baked Anny shape to use (0..11); -1 = chosen by ``body_seed``
+    body_shape: int = -1
 
     def validate(self) -> "PersonConfig":
         if len(self.waypoints_ne_m) < 1:
@@ -85,6 +90,10 @@ class PersonConfig:
             if len(c) != 3 or not all(0 <= v <= 255 for v in c):
                 raise ConfigError(f"person.{name}={c} must be three values 0..255 (blue, green, red)")
         return self
+
+
+#: (camera.blur_sigma_px, camera.noise_std) that ``-1`` stands for, per person model
+CAMERA_EFFECT_DEFAULTS: dict[str, tuple[float, float]] = {"ellipsoids": (0.0, 0.0), "anny": (0.6, 2.0)}
 
 
 @dataclass
@@ -113,6 +122,20 @@ class CameraConfig:
     #: sun direction (towards the sun) as azimuth from north and elevation above the horizon
     sun_azimuth_deg: float = 135.0
     sun_elevation_deg: float = 50.0
+    #: how the person is drawn: "ellipsoids" (17 shaded ellipsoids, fast) or "anny" (a posed Anny body
+    #: mesh with clothing colours, for the real keypoint models; see simulator/scene/anny_body.py)
+    person_model: str = "ellipsoids"
+    #: optics and sensor: Gaussian blur (sigma, px; 0 = none) and additive sensor noise (std, 0..255 levels;
+    #: 0 = none), applied to the whole image; the noise is reproducible from ``noise_seed``.
+    #: -1 = the person model's default: none with "ellipsoids" (as before), 0.6 px and 2 levels with "anny"
+    blur_sigma_px: float = -1.0
+    noise_std: float = -1.0
+    noise_seed: int = 0
+
+    def camera_effects(self) -> tuple[float, float]:
+        """(blur sigma px, noise std levels) in effect, the ``-1`` defaults resolved."""
+        blur, noise = CAMERA_EFFECT_DEFAULTS.get(self.person_model, (0.0, 0.0))
+        return (blur if self.blur_sigma_px < 0 else self.blur_sigma_px, noise if self.noise_std < 0 else self.noise_std)
 
     def validate(self) -> "CameraConfig":
         if not (16 <= self.width_px <= 8192 and 16 <= self.height_px <= 8192):
@@ -127,6 +150,12 @@ class CameraConfig:
             raise ConfigError(f"camera.jpeg_quality={self.jpeg_quality} must be 1..100")
         if len(self.lever_arm_body_m) != 3:
             raise ConfigError("camera.lever_arm_body_m must be [forward_m, right_m, down_m]")
+        if self.person_model not in ("ellipsoids", "anny"):
+            raise ConfigError(f"camera.person_model={self.person_model!r}; use 'ellipsoids' or 'anny'")
+        if not (self.blur_sigma_px == -1.0 or 0.0 <= self.blur_sigma_px <= 10.0):
+            raise ConfigError(f"camera.blur_sigma_px={self.blur_sigma_px} must be in 0..10 px (or -1: the default)")
+        if not (self.noise_std == -1.0 or 0.0 <= self.noise_std <= 50.0):
+            raise ConfigError(f"camera.noise_std={self.noise_std} must be in 0..50 levels (or -1: the default)")
         return self
 
 

@@ -20,6 +20,21 @@ How (per frame):
   from the sun plus sky light.
 * **Shadow.** Ground pixels around the person's sun-shadow footprint cast a ray to the sun; a hit on
   any ellipsoid darkens them (computed at half resolution and resized: a soft edge).
+
+``camera.person_model = "anny"`` draws the person instead as a posed Anny body mesh
+(:mod:`simulator.scene.anny_body`: shape and outfit from ``person.body_seed``), rasterised with a
+z-buffer (:mod:`simulator.scene.anny_raster`) in the person's box at the same supersampling, Gouraud-
+shaded (Lambert from the sun + ambient sky light, per-vertex normals), its shadow the mesh projected
+along the sun onto the ground (rasterised at half resolution, softened). The ground truth (joints,
+visibility, occlusion by the body) is the same; the box is the mesh's projected box. Cost
+(``bench/bench_render.py --person-model anny``, 640x360, 2 loaded cores): a whole camera step takes about
+24 ms of CPU against 20 ms with the ellipsoids (3 cameras at 10 Hz: 0.72 against 0.60 cores). Every frame
+is a function of the truth (vehicle pose, gimbal, person joints) and the seeds, so a recorded truth can
+also be rendered again offline.
+
+Camera effects on the finished image (both models; by default only with the Anny person): Gaussian blur
+``camera.blur_sigma_px`` and additive sensor noise ``camera.noise_std`` (a pre-drawn noise pool, randomly shifted per frame: reproducible
+from ``camera.noise_seed``, cheap).
 """
 
 from __future__ import annotations
@@ -30,7 +45,9 @@ import time
 
 import cv2
 import numpy as np
+import scipy.sparse
 
+from simulator.scene.anny_raster import rasterize
 from simulator.scene.body import MATERIALS, Ellipsoids, body_ellipsoids
 from simulator.scene.camera import GtProjection, PinholeCamera, ellipsoid_boxes, project_person
 from simulator.scene.config import CameraConfig, PersonConfig
@@ -124,6 +141,23 @@ class Renderer:
         X, Y = np.meshgrid((xs - cam.cx_px) / cam.fx_px, (ys - cam.cy_px) / cam.fy_px)
         self._grid_x = X.astype(np.float32)
         self._grid_y = Y.astype(np.float32)
+        self.person_model = cam_cfg.person_model
+        self.blur_sigma_px, self.noise_std = (float(v) for v in cam_cfg.camera_effects())
+        self._noise_rng = np.random.default_rng(cam_cfg.noise_seed)
+        self._noise_pool: np.ndarray | None = None
+        self.anny = None
+        if self.person_model == "anny":
+            from simulator.scene.anny_body import AnnyBodies
+
+            self.anny = AnnyBodies.load().person(
+                person_cfg.body_seed, None if person_cfg.body_shape < 0 else person_cfg.body_shape
+            )
+            F = self.anny.faces
+            V = len(self.anny.rest_vertices)
+            # vertex normal = sum of its faces' area-weighted normals: one sparse product per frame
+            self._vert_face = scipy.sparse.csr_matrix(
+                (np.ones(F.size), (F.ravel(), np.repeat(np.arange(len(F)), 3))), shape=(V, len(F))
+            )
 
     # ------------------------------------------------------------------ ground and sky
     MAX_DIST_M = 400.0
@@ -315,6 +349,84 @@ class Renderer:
         roi[:] = np.clip(out, 0, 255).astype(np.uint8)
         return (x0, y0, x1, y1)
 
+    # ------------------------------------------------------------------ Anny person
+    def _samples_scale(self, w: int, h: int) -> float:
+        ss = float(self.supersample)
+        while ss > 1 and w * h * ss * ss > self.max_person_samples:
+            ss -= 1
+        if w * h * ss * ss > self.max_person_samples:
+            ss = math.sqrt(self.max_person_samples / (w * h))
+        return ss
+
+    def _anny_shadow(self, img: np.ndarray, verts: np.ndarray, T_world_cam: np.ndarray) -> None:
+        """Darken the ground where the mesh, projected along the sun onto down = 0, falls."""
+        L = self.sun_world
+        if L[2] > -0.05:
+            return
+        g = verts - (verts[:, 2:3] / L[2]) * L[None, :]
+        g[:, 2] = 0.0
+        uv, z = self.cam.project(T_world_cam, g)
+        if not (z > 0.05).all():
+            return
+        W, H = self.cam.width_px, self.cam.height_px
+        x0, y0 = max(int(np.floor(uv[:, 0].min())) - 2, 0), max(int(np.floor(uv[:, 1].min())) - 2, 0)
+        x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 2, W), min(int(np.ceil(uv[:, 1].max())) + 2, H)
+        if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > 250_000:
+            return
+        r = rasterize(uv, z, self.anny.faces, None, (x0, y0, x1, y1), scale=0.5)
+        sh = r.mask.astype(np.float32)
+        sh = cv2.resize(sh, (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+        sh = cv2.GaussianBlur(sh, (0, 0), 1.0)
+        roi = img[y0:y1, x0:x1]
+        roi[:] = (roi.astype(np.float32) * (1.0 - 0.5 * sh)[..., None]).astype(np.uint8)
+
+    def _anny_person(self, img: np.ndarray, verts: np.ndarray, T_world_cam: np.ndarray) -> tuple[int, int, int, int] | None:
+        """Rasterise the posed mesh (world vertices (V, 3)) and composite it into img; returns its ROI."""
+        cam = self.cam
+        T_cw = invert_T(T_world_cam)
+        p = verts @ T_cw[:3, :3].T + T_cw[:3, 3]
+        if not (p[:, 2] > 0.05).all():
+            return None  # partly behind the camera: not drawn (a drone is never that close)
+        uv, z = cam.project_cam(p)
+        W, H = cam.width_px, cam.height_px
+        x0, y0 = max(int(np.floor(uv[:, 0].min())), 0), max(int(np.floor(uv[:, 1].min())), 0)
+        x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1, W), min(int(np.ceil(uv[:, 1].max())) + 1, H)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        F = self.anny.faces
+        fn = np.cross(p[F[:, 1]] - p[F[:, 0]], p[F[:, 2]] - p[F[:, 0]])  # outward, area-weighted
+        vn = self._vert_face @ fn
+        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+        lam = np.clip(vn @ self._sun_cam, 0.0, None)
+        sky = 0.5 + 0.5 * (vn @ self._up_cam)
+        shade = (0.30 + 0.70 * lam + 0.20 * sky).astype(np.float32)
+        col = np.concatenate([self.anny.vertex_bgr * shade[:, None], np.ones((len(p), 1), np.float32)], axis=1)
+        ss = self._samples_scale(x1 - x0, y1 - y0)
+        # front faces are counter-clockwise from outside: clockwise (negative area) in y-down pixels
+        r = rasterize(uv, z, F[:, [0, 2, 1]], col, (x0, y0, x1, y1), scale=ss, cull_back=True)
+        c = r.color  # premultiplied: the 4th channel is the coverage
+        w, h = x1 - x0, y1 - y0
+        if c.shape[:2] != (h, w):
+            interp = cv2.INTER_AREA if c.shape[1] > w else cv2.INTER_LINEAR
+            c = cv2.resize(c, (w, h), interpolation=interp)
+        roi = img[y0:y1, x0:x1]
+        out = roi.astype(np.float32) * (1.0 - c[..., 3:4]) + c[..., :3]
+        roi[:] = np.clip(out, 0, 255).astype(np.uint8)
+        return (x0, y0, x1, y1)
+
+    def _camera_effects(self, img: np.ndarray) -> np.ndarray:
+        if self.blur_sigma_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma_px)
+        if self.noise_std > 0:
+            H, W = img.shape[:2]
+            if self._noise_pool is None:
+                pool = self._noise_rng.normal(0.0, self.noise_std, (2 * H, 2 * W, 3))
+                self._noise_pool = np.clip(np.round(pool), -127, 127).astype(np.int16)
+            i, j = int(self._noise_rng.integers(H)), int(self._noise_rng.integers(W))
+            n = self._noise_pool[i : i + H, j : j + W]
+            img = cv2.add(img, n, dtype=cv2.CV_8U)
+        return img
+
     # ------------------------------------------------------------------ frame
     def render(self, T_world_cam: np.ndarray, joints_ned_m: np.ndarray | None) -> RenderedFrame:
         """One frame: ground, sky, shadow and the person (None: no person) seen from ``T_world_cam``."""
@@ -326,7 +438,22 @@ class Renderer:
         tm["ground_ms"] = (t1 - t0) * 1e3
         gt = None
         roi = None
-        if joints_ned_m is not None:
+        if joints_ned_m is not None and self.anny is not None:
+            joints_ned_m = np.asarray(joints_ned_m, dtype=float)
+            verts = self.anny.pose(joints_ned_m)
+            if self.shadows:
+                self._anny_shadow(img, verts, T_world_cam)
+            t2 = time.perf_counter()
+            tm["shadow_ms"] = (t2 - t1) * 1e3
+            T_cw = invert_T(T_world_cam)
+            self._sun_cam = T_cw[:3, :3] @ self.sun_world
+            self._up_cam = T_cw[:3, :3] @ np.array([0.0, 0.0, -1.0])
+            gt = project_person(self.cam, T_world_cam, joints_ned_m)
+            gt = _with_mesh_box(self.cam, gt, T_world_cam, verts)
+            if gt.box_px is not None:
+                roi = self._anny_person(img, verts, T_world_cam)
+            tm["person_ms"] = (time.perf_counter() - t2) * 1e3
+        elif joints_ned_m is not None:
             joints_ned_m = np.asarray(joints_ned_m, dtype=float)
             ell = body_ellipsoids(joints_ned_m)
             if self.shadows:
@@ -341,5 +468,23 @@ class Renderer:
             if gt.box_px is not None:
                 roi = self._person(img, ell.transformed(R_cw, t_cw), gt.box_px)
             tm["person_ms"] = (time.perf_counter() - t2) * 1e3
+        t3 = time.perf_counter()
+        img = self._camera_effects(img)
+        tm["effects_ms"] = (time.perf_counter() - t3) * 1e3
         tm["total_ms"] = (time.perf_counter() - t0) * 1e3
         return RenderedFrame(img, gt, roi, tm)
+
+
+def _with_mesh_box(cam: PinholeCamera, gt: GtProjection, T_world_cam: np.ndarray, verts: np.ndarray) -> GtProjection:
+    """``gt`` with its body box taken from the mesh's projected vertices (None: no vertex in front)."""
+    uv, z = cam.project(T_world_cam, verts)
+    front = z > 0.05
+    if not front.any():
+        return dataclasses.replace(gt, box_px=None, box_unclipped_px=None, truncated=False)
+    u = uv[front]
+    box_c = np.array([u[:, 0].min(), u[:, 1].min(), u[:, 0].max(), u[:, 1].max()])
+    clipped = np.array([max(box_c[0], 0.0), max(box_c[1], 0.0), min(box_c[2], cam.width_px), min(box_c[3], cam.height_px)])
+    if not (clipped[2] > clipped[0] and clipped[3] > clipped[1]):
+        return dataclasses.replace(gt, box_px=None, box_unclipped_px=box_c, truncated=True)
+    truncated = bool(np.any(np.abs(clipped - box_c) > 1e-9))
+    return dataclasses.replace(gt, box_px=clipped, box_unclipped_px=box_c, truncated=truncated)
