@@ -15,3 +15,12 @@ def ray_runner():
     runner = RayRunner("local", num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1")
     yield runner
     runner.close()
+
+
+@pytest.fixture(scope="session")
+def small_flight(tmp_path_factory):
+    """A 3-drone recorded flight of 12 frames (simulated keypoints), to copy per test (outputs go into it)."""
+    pytest.importorskip("mcap")
+    from tests.reconstruction.jobs.smallflight import write_small_flight
+
+    return write_small_flight(tmp_path_factory.mktemp("small_flight") / "flight")

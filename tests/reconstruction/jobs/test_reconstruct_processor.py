@@ -1,0 +1,31 @@
+"""reconstruction.api.reconstruct_flight as a job processor ("reconstruct") in a local worker process."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+
+from reconstruction.jobs import JobStatus, LocalRunner, submit
+from reconstruction.jobs.adapters import ReconstructJobConfig
+from reconstruction.multiview.fit import FitConfig
+from reconstruction.multiview.run import MultiviewConfig
+
+#: a short fit: these tests are about the job, the fit's quality is tested in tests/reconstruction/multiview
+QUICK = ReconstructJobConfig(method="multiview", config=MultiviewConfig(fit=FitConfig(iters=30), rrd=False))
+
+
+def test_reconstruct_flight_as_a_local_job(small_flight, tmp_path):
+    flight = shutil.copytree(small_flight, tmp_path / "flight")
+    with LocalRunner(workers=1, threads_per_worker=1) as runner:
+        job = submit(flight, QUICK, processor="reconstruct", runner=runner)
+        res = job.result(timeout=300)
+    assert job.status is JobStatus.DONE
+    assert res.method == "multiview" and res.joints_ned.shape[1:] == (17, 3) and np.all(np.isfinite(res.joints_ned))
+    # its files, in the flight's folder, hold what came back
+    z = np.load(flight / "reconstruction" / "motion.npz")
+    np.testing.assert_allclose(z["joints_ned"], res.joints_ned)
+    steps = [e.step for e in job.events]
+    assert steps[0] == "start" and "fit" in steps and steps[-1] == "export"
+    assert all(0.0 <= e.fraction <= 1.0 for e in job.events)
+    assert any("multiview reconstruction of" in line for line in job.log)
