@@ -11,6 +11,19 @@ from reconstruction.synth import procedural_walker
 from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose, intrinsics_matrix, project_points
 
 
+def quick_config():
+    """A short multiview fit (these tests are about the jobs; the fit's quality is tested in
+    tests/reconstruction/multiview)."""
+    from reconstruction.jobs.adapters import ReconstructJobConfig
+    from reconstruction.multiview.fit import FitConfig
+    from reconstruction.multiview.run import MultiviewConfig
+
+    return ReconstructJobConfig(method="multiview", config=MultiviewConfig(fit=FitConfig(iters=30), rrd=False))
+
+
+QUICK = quick_config()
+
+
 def write_small_flight(folder: Path, frames: int = 12) -> Path:
     from flightdata.recorder import Recorder
     from shared_msgs.messages import CameraInfo, Header, Keypoints2D, PersonKeypoints, VehicleState

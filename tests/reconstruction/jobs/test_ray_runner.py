@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from reconstruction.jobs import JobCancelled, JobStatus, LocalRunner
+from reconstruction.jobs import JobCancelled, JobStatus
 from tests.reconstruction.jobs.stepjob import (CACHE, StepConfig, StepFailure, make_flight, step_job, step_path)
-from tests.reconstruction.jobs.test_reconstruct_processor import QUICK
+from tests.reconstruction.jobs.smallflight import QUICK
 
 STEP = "tests.reconstruction.jobs.stepjob:step_job"
 
@@ -24,8 +24,7 @@ def test_ray_job_gives_the_local_result_with_units_as_ray_tasks(ray_runner, tmp_
     assert job.status is JobStatus.DONE and job.runner_name == "ray"
     expected = [(f"step{k}", f) for k in range(3) for f in (0.0, 1 / 3, 2 / 3, 1.0)]
     assert [(e.step, round(e.fraction, 6)) for e in job.events] == [(s, round(f, 6)) for s, f in expected]
-    with LocalRunner(workers=1, threads_per_worker=1) as local:
-        ref = local.submit(make_flight(tmp_path / "l", seed=7), cfg, processor=STEP).result(timeout=120)
+    ref = step_job(make_flight(tmp_path / "l", seed=7), cfg, lambda e: None, threading.Event())  # as a local worker does
     np.testing.assert_allclose(res.state, ref.state, rtol=1e-9, atol=1e-12)
     assert res.computed == ref.computed == [0, 1, 2]
 
@@ -63,13 +62,11 @@ def test_ray_job_error_passes_through(ray_runner, tmp_path):
     assert job.status is JobStatus.FAILED
 
 
-def test_reconstruct_flight_on_ray_equals_local(ray_runner, small_flight, tmp_path):
+def test_reconstruct_flight_on_ray_equals_local(ray_runner, small_flight, local_reconstruction, tmp_path):
     a = shutil.copytree(small_flight, tmp_path / "ray")
-    b = shutil.copytree(small_flight, tmp_path / "local")
-    job = ray_runner.submit(a, QUICK, processor="reconstruct")
-    with LocalRunner(workers=1, threads_per_worker=1) as local:
-        ref = local.submit(b, QUICK, processor="reconstruct").result(timeout=300)
-    res = job.result(timeout=300)
+    res = ray_runner.submit(a, QUICK, processor="reconstruct").result(timeout=300)
+    local_job, b = local_reconstruction
+    ref = local_job.result(timeout=0)
     np.testing.assert_allclose(res.joints_ned, ref.joints_ned, atol=1e-6)
     np.testing.assert_array_equal(res.t_ns, ref.t_ns)
     assert (a / "reconstruction" / "motion.bvh").read_text() == (b / "reconstruction" / "motion.bvh").read_text()

@@ -2,24 +2,14 @@
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 
-from reconstruction.jobs import JobStatus, LocalRunner, submit
-from reconstruction.jobs.adapters import ReconstructJobConfig
-from reconstruction.multiview.fit import FitConfig
-from reconstruction.multiview.run import MultiviewConfig
-
-#: a short fit: these tests are about the job, the fit's quality is tested in tests/reconstruction/multiview
-QUICK = ReconstructJobConfig(method="multiview", config=MultiviewConfig(fit=FitConfig(iters=30), rrd=False))
+from reconstruction.jobs import JobStatus
 
 
-def test_reconstruct_flight_as_a_local_job(small_flight, tmp_path):
-    flight = shutil.copytree(small_flight, tmp_path / "flight")
-    with LocalRunner(workers=1, threads_per_worker=1) as runner:
-        job = submit(flight, QUICK, processor="reconstruct", runner=runner)
-        res = job.result(timeout=300)
+def test_reconstruct_flight_as_a_local_job(local_reconstruction):
+    job, flight = local_reconstruction
+    res = job.result(timeout=300)
     assert job.status is JobStatus.DONE
     assert res.method == "multiview" and res.joints_ned.shape[1:] == (17, 3) and np.all(np.isfinite(res.joints_ned))
     # its files, in the flight's folder, hold what came back
