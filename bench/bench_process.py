@@ -17,8 +17,8 @@ Each worker / Ray task gets ``--threads`` BLAS / torch threads (default 1, as Ra
 seconds: the span of the drones' recordings (MCAP message times, first to last). Per step: the time from a step's
 first progress event to the next step's (the last to the job's end), averaged over the copies, divided by the
 flight seconds. ``wall``: submit of the first copy to the end of the last, per second of flight of all copies (the
-throughput); ``latency``: one job's submit to its end per second of its flight (mean). ``start``: submit to the
-processor running (worker process start-up and imports, or Ray scheduling).
+throughput); ``latency``: one job's submit to its end per second of its flight (mean). ``queued+start``: submit to
+the processor running (waiting for a free worker, then the worker process's start-up, or Ray's scheduling), mean.
 
 The processor's config: ``--config-factory module:function`` (called with no argument), else None (the
 processor's defaults; for ``reconstruct``, :class:`reconstruction.jobs.adapters.ReconstructJobConfig()`).
@@ -144,7 +144,7 @@ def main() -> int:
     steps = list(dict.fromkeys(s for r in rows for s in r["steps_per_flight_s"]))
     print(f"processing {processor} of {flight.name}: {fs:.1f} s of flight, {a.copies} copies per mode, "
           f"{a.threads} thread(s) per worker" + (f"; Ray start-up {ray_start:.1f} s (not counted)" if ray_start else ""))
-    head = ["mode", "wall s", "wall/flight-s", "latency/flight-s", "start s"] + [f"{s}/flight-s" for s in steps]
+    head = ["mode", "wall s", "wall/flight-s", "latency/flight-s", "queued+start s"] + [f"{s}/flight-s" for s in steps]
     print(" | ".join(head))
     print(" | ".join("---" for _ in head))
     for r in rows:

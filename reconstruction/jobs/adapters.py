@@ -53,6 +53,6 @@ def reconstruct_job(flight_dir: Path, cfg: ReconstructJobConfig | None, progress
 
     cfg = cfg or ReconstructJobConfig()
     stages = _StageProgress(progress, cancel)
-    stages("start", 0, 1)
+    stages("load", 0, 1)  # until reconstruct_flight reports: importing the reconstruction (torch, the body model)
     return reconstruct_flight(flight_dir, cfg.method, cfg.config, sortie=cfg.sortie, out_dir=cfg.out_dir,
                               progress=stages)

@@ -103,11 +103,12 @@ class LocalRunner:
 
     # ------------------------------------------------------------------ scheduling
     def _dispatch(self) -> None:
+        dropped: list[Job] = []
         with self._lock:
             while self._pending and len(self._running) < self.workers:
                 job, spec = self._pending.popleft()
                 if job.cancel_requested:
-                    job._finish(JobStatus.CANCELLED, message="cancelled before it started")
+                    dropped.append(job)
                     continue
                 cancel_evt = self._ctx.Event()
                 q = self._ctx.Queue()
@@ -117,6 +118,8 @@ class LocalRunner:
                 self._running[job.id] = (job, cancel_evt)
                 threading.Thread(target=self._pump, args=(job, proc, q, cancel_evt), name=f"job-{job.id}",
                                  daemon=True).start()
+        for job in dropped:  # outside the lock: its done callbacks may submit
+            job._finish(JobStatus.CANCELLED, message="cancelled before it started")
 
     def _cancel(self, job: Job) -> None:
         with self._lock:

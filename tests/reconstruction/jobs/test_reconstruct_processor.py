@@ -16,6 +16,6 @@ def test_reconstruct_flight_as_a_local_job(local_reconstruction):
     z = np.load(flight / "reconstruction" / "motion.npz")
     np.testing.assert_allclose(z["joints_ned"], res.joints_ned)
     steps = [e.step for e in job.events]
-    assert steps[0] == "start" and "fit" in steps and steps[-1] == "export"
+    assert steps[0] == "load" and "fit" in steps and steps[-1] == "export"
     assert all(0.0 <= e.fraction <= 1.0 for e in job.events)
     assert any("multiview reconstruction of" in line for line in job.log)
