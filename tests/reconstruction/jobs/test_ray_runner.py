@@ -62,6 +62,7 @@ def test_ray_job_error_passes_through(ray_runner, tmp_path):
     assert job.status is JobStatus.FAILED
 
 
+@pytest.mark.slow  # torch and the body model imported in a worker, a short fit
 def test_reconstruct_flight_on_ray_equals_local(ray_runner, small_flight, local_reconstruction, tmp_path):
     a = shutil.copytree(small_flight, tmp_path / "ray")
     res = ray_runner.submit(a, QUICK, processor="reconstruct").result(timeout=300)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from reconstruction.jobs import JobStatus
 
 
+@pytest.mark.slow  # torch and the body model imported in a worker, a short fit
 def test_reconstruct_flight_as_a_local_job(local_reconstruction):
     job, flight = local_reconstruction
     res = job.result(timeout=300)
