@@ -221,6 +221,12 @@ def _child_main(spec: str, flight_dir: str, cfg: Any, q, cancel_evt, unit_worker
     from skycap.childproc import die_with_parent
 
     try:
+        # its own session, as Ray's workers and the ground station's subprocess jobs are: with the kernel's
+        # autogroup scheduling a session is one scheduling group (each worker then gets a group's CPU share)
+        os.setsid()
+    except OSError:
+        pass
+    try:
         die_with_parent()
     except Exception:  # noqa: BLE001 - best effort (not Linux)
         pass
