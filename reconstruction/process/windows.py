@@ -1,7 +1,7 @@
 """Overlapping time windows over a long flight and their stitching into one motion (pure functions).
 
-Windows of ``window_s`` start every ``window_s - overlap_s``; the last one is stretched to end at the span's end
-(no short tail window). Each is fitted on its own; :func:`stitch` cross-fades neighbouring windows over their
+Windows of ``window_s`` start every ``window_s - overlap_s``; the last one ends at the span's end and is as long as
+the others (it overlaps its neighbour more), a short tail is folded into it. Each is fitted on its own; :func:`stitch` cross-fades neighbouring windows over their
 overlap with weights that ramp linearly from 0 at a window's edge to 1 at ``overlap_s`` inside it, so the motion is
 continuous at every boundary and equals the single window's result away from the overlaps.
 """
@@ -26,6 +26,8 @@ def plan_windows(t0_ns: int, t1_ns: int, window_s: float, overlap_s: float) -> l
     for k in range(n):
         a = t0_ns + int(round(k * step * 1e9))
         b = t1_ns if k == n - 1 else a + int(round(window_s * 1e9))
+        if k == n - 1:  # a full-length last window (it overlaps its neighbour more)
+            a = min(a, t1_ns - int(round(window_s * 1e9)))
         out.append((int(a), int(min(b, t1_ns))))
     return out
 
