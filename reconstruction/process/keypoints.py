@@ -40,8 +40,9 @@ def fuse_keypoints(kp: np.ndarray, box_xywh: np.ndarray, agree_fraction: float =
     xy = np.nan_to_num(kp[..., :2])
     c = np.nan_to_num(kp[..., 2])
     c = np.where(np.all(np.isfinite(kp[..., :2]), axis=-1) & (c >= min_confidence), c, 0.0)  # (F, M, 17)
-    side = np.nanmax(np.asarray(box_xywh, dtype=float)[:, 2:], axis=1)  # (F,)
-    side = np.where(np.isfinite(side) & (side > 0), side, 1.0)
+    wh = np.asarray(box_xywh, dtype=float)[:, 2:]
+    side = np.where(np.all(np.isfinite(wh), axis=1), np.max(np.nan_to_num(wh), axis=1), 1.0)  # (F,)
+    side = np.where(side > 0, side, 1.0)
     wsum = c.sum(axis=1)  # (F, 17)
     voted = wsum > 0
     mean = np.einsum("fmj,fmjk->fjk", c, xy) / np.where(voted, wsum, 1.0)[..., None]
