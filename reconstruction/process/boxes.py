@@ -7,9 +7,10 @@ Per frame, in order of preference:
    that overlaps the offline smoother's projected person most (else the highest score);
 2. ``track``: the offline smoother's person (:func:`reconstruction.track.flight.refine_recordings`, all drones'
    detections smoothed together) projected into the frame, where the frame has no detection;
-3. ``detector``: the ONNX person detector (:class:`onboard.detector.detector.PersonDetector`, whole frame) re-run
-   on the recorded image where neither gave a box, between the first and the last boxed frame (before and after,
-   at take-off and landing, the camera does not look at the person; ``detector_outside_span`` runs it there too);
+3. ``detector``: the ONNX person detector (:class:`onboard.detector.detector.PersonDetector`) re-run on the
+   recorded image where neither gave a box, in gaps of at most ``detector_max_gap_s`` between boxed frames, within
+   the neighbours' boxes (:func:`detector_gaps`; a longer gap -- take-off, landing -- is a camera that does not see
+   the person);
 4. none (NaN box): the frame is left out of the keypoint step.
 
 :func:`choose_boxes` is the pure choice; :func:`compute_boxes` does the I/O.
@@ -94,6 +95,31 @@ def choose_boxes(t_ns: np.ndarray, width_px: int, height_px: int, detections: di
     return out, src
 
 
+def detector_gaps(t_ns: np.ndarray, boxes: np.ndarray, src: np.ndarray, max_gap_s: float, width_px: int,
+                  height_px: int) -> tuple[np.ndarray, dict[int, tuple]]:
+    """The frames worth re-running the detector on: those of a run of box-less frames between two boxed frames
+    that lasts at most ``max_gap_s`` (a longer run -- take-off, landing, turning away -- is a camera that does not
+    see the person), each with its search region: the two neighbours' boxes, united and doubled. Pure."""
+    have = np.flatnonzero(src > 0)
+    frames, rois = [], {}
+    for a, b in zip(have[:-1], have[1:]):
+        if b - a < 2 or (t_ns[b] - t_ns[a]) * 1e-9 > max_gap_s:
+            continue
+        x0 = min(boxes[a, 0], boxes[b, 0])
+        y0 = min(boxes[a, 1], boxes[b, 1])
+        x1 = max(boxes[a, 0] + boxes[a, 2], boxes[b, 0] + boxes[b, 2])
+        y1 = max(boxes[a, 1] + boxes[a, 3], boxes[b, 1] + boxes[b, 3])
+        cx, cy, w, h = (x0 + x1) / 2, (y0 + y1) / 2, 2 * (x1 - x0), 2 * (y1 - y0)
+        rx0, ry0 = max(0.0, cx - w / 2), max(0.0, cy - h / 2)
+        rx1, ry1 = min(float(width_px), cx + w / 2), min(float(height_px), cy + h / 2)
+        if rx1 - rx0 < 16 or ry1 - ry0 < 16:
+            continue
+        for i in range(a + 1, b):
+            frames.append(i)
+            rois[i] = (rx0, ry0, rx1 - rx0, ry1 - ry0)
+    return np.asarray(frames, dtype=np.int64), rois
+
+
 def smoother_boxes(flight, sortie: int | None) -> dict[str, dict[int, np.ndarray]]:
     """{drone: {capture time ns: the smoothed person's box (x_min, y_min, x_max, y_max)}} from the offline
     smoother over the whole flight; {} when it cannot run (no detections, ...)."""
@@ -121,16 +147,13 @@ def compute_boxes(sorties: Sequence[Sortie], drone_id: str, frames: FrameTable, 
     """One drone's boxes (the cache entry): ``t_ns``, ``box_xywh`` (F, 4), ``source`` (F,)."""
     topic, dets = read_detections(sorties, drone_id)
     boxes, src = choose_boxes(frames.t_ns, frames.width_px, frames.height_px, dets, track_boxes, cfg.min_score)
-    missing = np.flatnonzero(src == 0)
-    boxed = np.flatnonzero(src > 0)
-    if len(boxed) and not cfg.detector_outside_span:  # take-off and landing: the camera does not see the person
-        missing = missing[(missing > boxed[0]) & (missing < boxed[-1])]
+    missing, rois = detector_gaps(frames.t_ns, boxes, src, cfg.detector_max_gap_s, frames.width_px, frames.height_px)
     tick(0.5, 1.0, f"{drone_id}: {len(frames) - len(missing)}/{len(frames)} frames boxed from {topic} and the track")
     if len(missing) and cfg.detector_fill and detector_factory is not None:
         det = detector_factory()
         for n, (i, img) in enumerate(iter_images(sorties, missing)):
             if img is not None:
-                res = det.detect(img, mode="full")
+                res = det.detect(img, mode="roi", roi_xywh=rois[i])
                 if res.detections:
                     boxes[i] = res.detections[0].xywh
                     src[i] = 3

@@ -27,8 +27,8 @@ class BoxesConfig:
     use_smoother: bool = True
     detector_fill: bool = True
     detector_threads: int = 1  #: onnxruntime intra-op threads of the person detector
-    #: also re-run the detector before the first and after the last boxed frame (take-off, landing)
-    detector_outside_span: bool = False
+    #: re-run the detector in gaps between boxed frames up to this long (s); longer gaps are left without a box
+    detector_max_gap_s: float = 2.0
 
 
 @dataclasses.dataclass

@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from reconstruction.process.boxes import choose_boxes
+from reconstruction.process.boxes import choose_boxes, detector_gaps
 from reconstruction.process.cache import atomic_write_npz, make_key, read_npz
 from reconstruction.process.events import Cancelled, StepProgress
 from reconstruction.process.keypoints import fuse_keypoints
@@ -114,3 +114,14 @@ def test_cache_writes_are_atomic_and_keys_follow_the_settings(tmp_path):
     p.write_bytes(b"garbage")
     assert read_npz(p) is None  # a damaged entry is recomputed, not trusted
     assert make_key("k", {"a": 1}) == make_key("k", {"a": 1}) != make_key("k", {"a": 2})
+
+
+def test_the_detector_reruns_only_in_short_gaps_within_the_neighbours_boxes():
+    t = np.arange(12) * 100_000_000  # 10 Hz
+    src = np.array([0, 1, 0, 0, 1, 0, 0, 0, 0, 0, 0, 1])  # a 0.3 s gap, then a 0.7 s one
+    boxes = np.full((12, 4), np.nan)
+    boxes[[1, 4, 11]] = [[100, 100, 20, 40], [110, 100, 20, 40], [300, 100, 20, 40]]
+    frames, rois = detector_gaps(t, boxes, src, max_gap_s=0.5, width_px=640, height_px=360)
+    assert frames.tolist() == [2, 3]  # not before the first box, not in the long gap
+    x, y, w, h = rois[2]
+    assert x <= 100 and x + w >= 130 and y <= 100 and y + h >= 140 and w == pytest.approx(60.0)
