@@ -97,7 +97,6 @@ def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str,
     remaining = {c: int(np.sum(has_box[c * n : min((c + 1) * n, F)])) for c in todo}
 
     def flush() -> None:
-        nonlocal done_frames
         if not pending:
             return
         idx = [i for i, _ in pending]

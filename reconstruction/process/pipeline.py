@@ -302,6 +302,7 @@ def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, c
         key = make_key("boxes", CACHE_VERSION, ident[d], everyone, cfg.boxes, cfg.sortie)
         path = step_dir("boxes") / f"{d}-{key}.npz"
         z = read_npz(path)
+        hit = z is not None
         if z is None:
             try:
                 frames = frame_table(logs[d])
@@ -321,7 +322,7 @@ def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, c
         else:
             cached += 1
         out[d] = z
-        sp(i + 1, n, f"{d}: boxes" + (" (cached)" if cached and z is not None else ""))
+        sp(i + 1, n, f"{d}: boxes" + (" (cached)" if hit else ""))
     steps["boxes"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": cached == n and n > 0}
     return out
 
