@@ -49,7 +49,7 @@ COMMANDS_OF_MODULE = {
     "onboard.detector.cli": ("detect",),
     "groundstation.cli": ("fleet", "gs"),
     "comms.cli": ("keys",),
-    "reconstruction.cli": ("eval", "reconstruct"),
+    "reconstruction.cli": ("eval", "process", "reconstruct"),
     "reconstruction.keypoints.cli": ("keypoints",),
     "apps.refine": ("refine",),
 }

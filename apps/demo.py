@@ -57,8 +57,9 @@ What it launches (each an OS process, as on the real system; logs in ``<out>/log
 3. one onboard agent per drone (``skycap agent``: MAVSDK to its vehicle, Zenoh to the fleet, MCAP recording);
 4. the fleet client, in this process (ground-station heartbeat; take off, orbit plan, start, then land).
 
-Then it stops everything cleanly (SIGTERM: agents close their recordings), runs ``skycap reconstruct
-<out>`` when that command exists, and writes ``summary.json`` (see :mod:`evaluation.flight`) and
+Then it stops everything cleanly (SIGTERM: agents close their recordings), runs ``skycap process
+<out>`` (the keypoint models on the recorded images; ``--set reconstruct_keypoints='"sim"'`` fits the simulator's
+keypoints instead) when that command exists, and writes ``summary.json`` (see :mod:`evaluation.flight`) and
 prints its table. The flight folder (:mod:`flightdata.folder`): ``drone_<i>.s001.mcap``, ``truth.mcap``, ``config.toml`` (resolved),
 ``plan.json``, ``summary.json``, ``logs/``.
 """
@@ -228,6 +229,9 @@ class DemoConfig:
     agent_set: list[str] = field(default_factory=list)
     cameras: bool = True
     reconstruct: bool = True
+    #: what the reconstruction (``skycap process``) fits: "models" (the keypoint models on the recorded images) or
+    #: "sim" (the simulator's recorded noisy true keypoints, for evaluation)
+    reconstruct_keypoints: str = "models"
     #: "orbit" (the plan's circle around the centre) or "track" (active capture, see TrackDemoConfig)
     mode: str = "orbit"
     track: TrackDemoConfig = field(default_factory=TrackDemoConfig)
@@ -260,6 +264,8 @@ class DemoConfig:
             raise ConfigError(f"mode={self.mode!r}; use 'orbit' or 'track'")
         if self.mode == "track" and not self.cameras:
             raise ConfigError("mode='track' needs the cameras (cameras=true): the drones find the person in them")
+        if self.reconstruct_keypoints not in ("models", "sim"):
+            raise ConfigError(f"reconstruct_keypoints={self.reconstruct_keypoints!r}; use 'models' or 'sim'")
         if self.track.detections not in ("sim", "onnx"):
             raise ConfigError(f"track.detections={self.track.detections!r}; use 'sim' or 'onnx'")
         ids = _drone_ids(self.drones)
@@ -685,13 +691,17 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         # reconstruction_monocular/ (the folder is new: run_demo refuses one that holds a flight)
         summaries = tuple(flight.reconstruction_dir(m) / "summary.json" for m in ("multiview", "monocular"))
         with open(logs / "reconstruct.log", "w") as f:
-            r = subprocess.run(py + ["reconstruct", str(out)], stdout=f, stderr=subprocess.STDOUT)
+            r = subprocess.run(py + ["process", str(out), "--keypoints", cfg.reconstruct_keypoints], stdout=f,
+                               stderr=subprocess.STDOUT)
         recon = {"ran": True, "exit_code": r.returncode, "seconds": round(time.monotonic() - t0, 1),
-                 "log": str(logs / "reconstruct.log")}
+                 "keypoints_source": cfg.reconstruct_keypoints, "log": str(logs / "reconstruct.log")}
         fresh = [rs for rs in summaries if rs.is_file()]
         if r.returncode == 0 and fresh:
             recon["summary"] = json.loads(fresh[0].read_text())
-        log.info("skycap reconstruct %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
+            # what the 2D step used: the model names ("movenet_thunder+blazepose_full") or "sim"
+            recon["keypoints_source"] = recon["summary"].get("keypoints_source", cfg.reconstruct_keypoints)
+            recon["seconds_per_flight_second"] = recon["summary"].get("seconds_per_flight_second")
+        log.info("skycap process %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],
                  logs / "reconstruct.log")
     try:
         summary = summarize_flight(out, settle_s=cfg.settle_s)  # the first sortie (plan.json)

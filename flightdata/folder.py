@@ -25,6 +25,8 @@ Layout (version :data:`LAYOUT_VERSION`; every name below is spelled here and now
       reconstruction_monocular/       monocular reconstruction outputs (same files)
       reconstruction_refined/         multi-view reconstruction with the refined drone positions (``skycap refine --reconstruct``)
       refined_track.npz / .json       the offline smoother's outputs (``skycap refine``)
+      processing/                     ``skycap process``'s step cache (boxes, keypoints in chunks, fit windows),
+                                      each entry keyed by a hash of its inputs and settings; safe to delete
 
 Layout 1 (before sorties) named a drone's only recording ``<drone_id>.mcap``; it reads as sortie 1.
 
@@ -68,6 +70,7 @@ RECONSTRUCTION_DIRS = {"multiview": "reconstruction", "monocular": "reconstructi
 RECONSTRUCTION_REFINED_DIR = "reconstruction_refined"
 REFINED_NPZ = "refined_track.npz"
 REFINED_JSON = "refined_track.json"
+PROCESSING_DIR = "processing"
 
 _SORTIE_RE = re.compile(r"^(?P<node>[^.]+)\.s(?P<n>\d{3,})\.mcap$")
 _LEGACY_RE = re.compile(r"^(?P<node>[^.]+)\.mcap$")
@@ -159,6 +162,17 @@ class FlightFolder:
     def refined_reconstruction_dir(self) -> Path:
         """The multi-view reconstruction with the refined drone positions (``skycap refine --reconstruct``)."""
         return self.path / RECONSTRUCTION_REFINED_DIR
+
+    @property
+    def processing_dir(self) -> Path:
+        """``skycap process``'s step cache (``processing/``): derived data only, never a recording."""
+        return self.path / PROCESSING_DIR
+
+    def processing_step_dir(self, step: str) -> Path:
+        """The cache folder of one ``skycap process`` step (``processing/<step>``, e.g. ``keypoints``)."""
+        if not step or "/" in step or step.startswith("."):
+            raise FlightFolderError(f"processing step {step!r} cannot name a folder: use letters, digits and '_'")
+        return self.processing_dir / step
 
     def reconstruction_dir(self, method: str) -> Path:
         """The output folder of a reconstruction method (``multiview`` or ``monocular``)."""

@@ -29,7 +29,12 @@ Library functions do not print (they log), take no argparse namespace and return
 act on are :class:`skycap.errors.SkycapError` subclasses (:class:`ReconstructionError`, ``CaptureError``,
 ``FlightFolderError``) whose message names the problem and the fix. ``progress(stage, done, total)`` is called
 as the work advances (``stage``: e.g. ``"read"``, ``"fit"``, ``"export"``; ``done`` of ``total`` steps).
-The command line (``skycap reconstruct`` / ``skycap refine``) is a thin layer over these functions.
+The command line (``skycap refine``) is a thin layer over these functions.
+
+From the recorded images: :func:`reconstruction.process.process` (``skycap process``, alias ``skycap reconstruct``)
+runs the keypoint models on the flight's camera frames and then these methods' fits, in cached, resumable,
+cancellable steps with progress events; :func:`reconstruct_flight` fits the keypoints recorded in the flight
+(``keypoints2d`` / ``sim/keypoints2d``).
 """
 
 from __future__ import annotations

@@ -1,20 +1,25 @@
-"""Reconstruction subcommands: ``skycap reconstruct`` and the ``skycap eval ...`` harnesses.
+"""Reconstruction subcommands: ``skycap process`` (alias ``skycap reconstruct``) and the ``skycap eval ...`` harnesses.
 
-``skycap reconstruct`` is a thin layer over the library (:func:`reconstruction.api.reconstruct_flight`): it parses
-the arguments, builds the method's config, calls the library, prints the summary and returns the exit code.
+``skycap process FLIGHT_DIR`` is a thin layer over the library (:func:`reconstruction.process.process`): it parses
+the arguments, builds the :class:`reconstruction.process.config.ProcessConfig` (``--config`` / ``--set`` and the
+flags below), shows a progress bar driven by the :class:`reconstruction.process.events.ProgressEvent` s, prints the
+summary and returns the exit code. ``skycap reconstruct`` is the same command under its former name.
 
 Each method package contributes through optional hooks, so methods can be added without touching this file:
 
 * ``reconstruction.<method>.cli.register_eval(eval_subparsers)`` adds ``skycap eval <method> ...``
-* ``reconstruction.<method>.cli.add_reconstruct_args(parser)`` adds its ``skycap reconstruct`` options and
+* ``reconstruction.<method>.cli.add_reconstruct_args(parser)`` adds its ``skycap process`` options and
   ``reconstruction.<method>.cli.reconstruct_config(args) -> (config, out_dir | None)`` turns them into the method's
-  config for :func:`reconstruction.api.reconstruct_flight` (out_dir None: the flight's folder for the method).
+  config (the fields that differ from the method's defaults become ``ProcessConfig.<method>`` settings; out_dir
+  None: the flight's folder for the method).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import sys
+import time
 from pathlib import Path
 
 METHODS = ("multiview", "monocular")
@@ -30,6 +35,8 @@ def _method_cli(method: str):
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from skycap.config import add_config_args
+
     ev = sub.add_parser("eval", help="evaluate a reconstruction method on real motion capture")
     ev_sub = ev.add_subparsers(dest="eval_method", metavar="METHOD")
     methods = [m for m in METHODS if _method_cli(m) is not None]
@@ -39,66 +46,134 @@ def register(sub: argparse._SubParsersAction) -> None:
             mod.register_eval(ev_sub)
     ev.set_defaults(func=lambda a: ev.print_help() or 2)
 
-    rc = sub.add_parser("reconstruct", help="reconstruct the 3D body motion of a recorded flight")
+    rc = sub.add_parser(
+        "process", aliases=["reconstruct"],
+        help="3D body motion of a recorded flight from its images (keypoint models -> fit -> BVH/NPZ/CSV/RRD)",
+        description="Process a recorded flight: per drone the person's box in each frame, the keypoint models on the "
+        "recorded images (fused), the multi-view fit (monocular with one drone) in overlapping windows, the exports. "
+        "Each step is cached in FLIGHT_DIR/processing/ and resumes after a crash or Ctrl-C. `skycap reconstruct` is "
+        "the same command. Example: skycap process flights/demo --keypoints sim --set windows.window_s=30")
     rc.add_argument("flight_dir", type=Path, help="flight folder written by the onboard recorder / demo")
-    rc.add_argument("--method", choices=METHODS, default=None, help="default: multiview with >1 drone, else monocular")
+    rc.add_argument("--method", choices=METHODS, default=None, help="default: multiview with >1 usable drone, else monocular")
     rc.add_argument("--sortie", type=int, default=None, metavar="N",
-                    help="reconstruct only sortie N of each drone (default: the whole flight, every sortie in order)")
+                    help="only sortie N of each drone (default: the whole flight, every sortie in order)")
+    rc.add_argument("--keypoints", choices=("models", "sim"), default=None,
+                    help="models (default): the keypoint models on the recorded images; sim: the simulator's recorded "
+                         "noisy true keypoints (evaluation)")
+    rc.add_argument("--models", default=None, help="comma-separated keypoint models (default movenet_thunder,blazepose_full)")
+    rc.add_argument("--threads", type=int, default=None, help="onnxruntime threads per keypoint model (default 1)")
+    rc.add_argument("--window-s", type=float, default=None, help="fit window length, s (default 60)")
+    rc.add_argument("--out", type=Path, default=None, help="output folder (default: the method's folder of the flight)")
+    rc.add_argument("--no-cache", action="store_true", help="neither read nor write FLIGHT_DIR/processing/")
+    add_config_args(rc)
     for m in methods:
         mod = _method_cli(m)
         if hasattr(mod, "add_reconstruct_args"):
             mod.add_reconstruct_args(rc)
-    rc.set_defaults(func=_reconstruct)
+    rc.set_defaults(func=_process)
 
 
-class _ProgressBars:
-    """``progress(stage, done, total)`` for the terminal: one transient bar per stage on stderr (as the fit's own
-    bars were), nothing when stderr is not a terminal."""
+def _changed(cfg, default, prefix: str) -> dict:
+    """Dotted keys of ``cfg``'s fields that differ from ``default`` (nested dataclasses flattened)."""
+    from skycap.config import config_to_dict
 
-    def __init__(self) -> None:
+    out = {}
+
+    def walk(a, b, p):
+        for k, v in a.items():
+            if isinstance(v, dict) and isinstance(b.get(k), dict):
+                walk(v, b[k], f"{p}{k}.")
+            elif v != b.get(k):
+                out[f"{p}{k}"] = v
+
+    walk(config_to_dict(cfg), config_to_dict(default), prefix)
+    return out
+
+
+class ProgressBar:
+    """Draws :class:`ProgressEvent` s: a tqdm bar per step on a terminal (a plain ``\\r`` line where tqdm is not
+    installed), one line per 10 % of a step otherwise (logs)."""
+
+    def __init__(self, stream=None) -> None:
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        try:
+            from tqdm import tqdm
+        except ImportError:  # pragma: no cover - tqdm is a base dependency, but the bar must not need it
+            tqdm = None
+        self._tqdm = tqdm if self.tty else None
         self._bar = None
-        self._stage = None
+        self._step = None
+        self._last = -1
 
-    def __call__(self, stage: str, done: int, total: int) -> None:
-        import sys
-
-        if not sys.stderr.isatty():
-            return
-        from tqdm import tqdm
-
-        if stage != self._stage:
+    def __call__(self, ev) -> None:
+        eta = "" if ev.eta_s is None else f" eta {ev.eta_s:.0f} s"
+        if ev.step != self._step:
             self.close()
-            self._stage = stage
-            self._bar = tqdm(total=total, desc=stage, leave=False)
-        self._bar.total = total
-        self._bar.n = done
-        self._bar.refresh()
-        if done >= total:
-            self.close()
+            self._step, self._last = ev.step, -1
+            if self._tqdm is not None:
+                self._bar = self._tqdm(total=100, desc=ev.step, leave=False, file=self.stream,
+                                       bar_format="{desc:>9}: {percentage:3.0f}%|{bar}| {postfix}")
+        pct = int(round(100 * ev.fraction))
+        if self._bar is not None:
+            self._bar.n = pct
+            self._bar.set_postfix_str(f"{ev.message}{eta}", refresh=False)
+            self._bar.refresh()
+        elif self.tty:
+            width = 30
+            fill = int(width * ev.fraction)
+            self.stream.write(f"\r{ev.step:>9}: {pct:3d}% [{'#' * fill}{'.' * (width - fill)}] {ev.message[:60]:60s}{eta}")
+            self.stream.flush()
+        elif pct // 10 != self._last // 10:
+            self.stream.write(f"{time.strftime('%H:%M:%S')} {ev.step}: {pct}%{eta} {ev.message}\n")
+            self.stream.flush()
+        self._last = pct
 
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
-        self._bar, self._stage = None, None
+        elif self.tty and self._step is not None:
+            self.stream.write("\n")
+        self._bar = None
 
 
-def _reconstruct(args: argparse.Namespace) -> int:
+def process_config(args: argparse.Namespace):
+    """The :class:`ProcessConfig` of ``skycap process``'s arguments (``--config``/``--set``, then the flags)."""
+    from flightdata.folder import FlightFolder
+    from reconstruction.process.config import ProcessConfig
+    from skycap.config import config_from_args
+
+    extra = {"keypoints.source": args.keypoints, "keypoints.threads": args.threads, "windows.window_s": args.window_s,
+             "method": args.method, "sortie": args.sortie, "out_dir": args.out, "cache": False if args.no_cache else None}
+    if args.models:
+        extra["keypoints.models"] = [m.strip() for m in args.models.split(",") if m.strip()]
+    base = ProcessConfig()
+    outs = {}
+    for m in METHODS:
+        mod = _method_cli(m)
+        if mod is None or not hasattr(mod, "reconstruct_config"):
+            continue
+        mcfg, out = mod.reconstruct_config(args)
+        extra.update(_changed(mcfg, getattr(base, m), f"{m}."))
+        outs[m] = out
+    if args.out is None and any(outs.values()):
+        from reconstruction.api import choose_method
+
+        method = args.method or choose_method(FlightFolder(args.flight_dir), args.sortie)
+        extra["out_dir"] = outs.get(method)
+    return config_from_args(ProcessConfig, args, extra).validate()
+
+
+def _process(args: argparse.Namespace) -> int:
     import json
 
-    from flightdata.folder import FlightFolder
-    from reconstruction.api import choose_method, reconstruct_flight
-    from skycap.errors import SkycapError
+    from reconstruction.process.pipeline import process
 
-    flight = FlightFolder(args.flight_dir)
-    method = args.method or choose_method(flight, args.sortie)
-    mod = _method_cli(method)
-    if mod is None or not hasattr(mod, "reconstruct_config"):
-        raise SkycapError(f"reconstruction method {method!r} is not available in this build")
-    config, out_dir = mod.reconstruct_config(args)
-    bars = _ProgressBars()
+    cfg = process_config(args)
+    bar = ProgressBar()
     try:
-        result = reconstruct_flight(flight, method, config, sortie=args.sortie, out_dir=out_dir, progress=bars)
+        result = process(args.flight_dir, cfg, progress=bar)
     finally:
-        bars.close()
+        bar.close()
     print(json.dumps(result.summary, indent=2))
     return 0

@@ -79,13 +79,17 @@ def _gimbal_track(msgs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
 
 
 def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: bool = True,
-                   position_offset: tuple[np.ndarray, np.ndarray] | None = None, name: str | None = None) -> CameraCapture:
+                   position_offset: tuple[np.ndarray, np.ndarray] | None = None, name: str | None = None,
+                   keypoints: tuple | None = None) -> CameraCapture:
     """One drone's recording(s) -> its :class:`CameraCapture` (see the module docstring).
 
     paths: one MCAP file or the drone's sorties in sortie order (read as one log, :class:`SortieLogs`);
     name: the camera's name (default: the drone id the first file names, ``drone_1.s002.mcap`` -> ``drone_1``).
     position_offset: optional (t_ns (N,), offset_ned_m (N, 3)) subtracted from the reported positions
     (interpolated, held at the ends): the offline smoother's estimate of the drone's GPS offset.
+    keypoints: ``(t_frame_ns (F,), detectors (D,), keypoints_px (F, D, 17, 2), confidence (F, D, 17))`` computed
+    elsewhere (``skycap process`` runs the keypoint models on the recorded images): used instead of the
+    ``keypoints2d`` / ``sim/keypoints2d`` topics (undistorted the same way).
     """
     from flightdata.flightlog import SortieLogs
     from shared_msgs.messages import CameraInfo, GimbalAttitude, Keypoints2D, VehicleState
@@ -96,16 +100,19 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
     states = flog.read_topic("state", VehicleState)
     infos = flog.read_topic("camera_info", CameraInfo)
     gimbal = _gimbal_track(flog.read_topic("gimbal", GimbalAttitude)) if gimbal_stabilised else None
-    kps = flog.read_topic("keypoints2d", Keypoints2D)
-    if not kps:
-        kps = flog.read_topic("sim/keypoints2d", Keypoints2D)
+    kps = None
+    if keypoints is None:
+        kps = flog.read_topic("keypoints2d", Keypoints2D)
+        if not kps:
+            kps = flog.read_topic("sim/keypoints2d", Keypoints2D)
     name = name or paths[0].name.split(".")[0]
     if not states:
         raise CaptureError(f"{path}: no 'state' messages; the drone's pose is needed for every camera")
     if not infos:
         raise CaptureError(f"{path}: no 'camera_info' messages; the camera intrinsics are needed")
-    if not kps:
-        raise CaptureError(f"{path}: no 'keypoints2d' or 'sim/keypoints2d' messages; run a 2D detector on the flight first")
+    if keypoints is None and not kps:
+        raise CaptureError(f"{path}: no 'keypoints2d' or 'sim/keypoints2d' messages; run the keypoint models on the "
+                           "flight's images first (skycap process FLIGHT_DIR)")
     infos = sorted(infos, key=lambda m: m.header.t_measurement_ns)
     t_info = np.array([m.header.t_measurement_ns for m in infos], dtype=np.int64)
     K = np.stack([intrinsics_matrix(m.fx_px, m.fy_px, m.cx_px, m.cy_px) for m in infos])
@@ -133,19 +140,24 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
         # the camera moves with the body (the lever arm's rotational velocity, centimetres per second, is left out)
         vel.append(s.velocity_ned_m_s)
         vs.append(float(np.sqrt(np.sum(s.velocity_cov_m2_s2))))
-    detectors = sorted({m.detector for m in kps})
-    frames = sorted({m.header.t_measurement_ns for m in kps})
-    fidx = {t: i for i, t in enumerate(frames)}
-    D, F = len(detectors), len(frames)
-    uv = np.zeros((F, D, 17, 2))
-    conf = np.zeros((F, D, 17))
-    for m in kps:
-        if not m.persons:
-            continue
-        best = max(m.persons, key=lambda p: float(np.mean(p.confidence)))
-        f, d = fidx[m.header.t_measurement_ns], detectors.index(m.detector)
-        uv[f, d] = np.asarray(best.keypoints_px, dtype=float).reshape(17, 2)
-        conf[f, d] = np.asarray(best.confidence, dtype=float)
+    if keypoints is not None:
+        t_kp, detectors, uv, conf = keypoints
+        frames, detectors = [int(t) for t in t_kp], list(detectors)
+        uv, conf = np.nan_to_num(np.array(uv, dtype=float)), np.array(conf, dtype=float)
+    else:
+        detectors = sorted({m.detector for m in kps})
+        frames = sorted({m.header.t_measurement_ns for m in kps})
+        fidx = {t: i for i, t in enumerate(frames)}
+        D, F = len(detectors), len(frames)
+        uv = np.zeros((F, D, 17, 2))
+        conf = np.zeros((F, D, 17))
+        for m in kps:
+            if not m.persons:
+                continue
+            best = max(m.persons, key=lambda p: float(np.mean(p.confidence)))
+            f, d = fidx[m.header.t_measurement_ns], detectors.index(m.detector)
+            uv[f, d] = np.asarray(best.keypoints_px, dtype=float).reshape(17, 2)
+            conf[f, d] = np.asarray(best.confidence, dtype=float)
     uv = undistort_keypoints(uv, conf, np.array(frames, dtype=np.int64), infos, t_info)  # the fit is pinhole
     vel_a, vs_a = np.asarray(vel, dtype=float), np.asarray(vs, dtype=float)
     if not (np.all(np.isfinite(vel_a)) and np.all(np.isfinite(vs_a)) and np.all(vs_a > 0)):

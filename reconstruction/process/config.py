@@ -1,0 +1,111 @@
+"""The settings of ``skycap process`` (:class:`ProcessConfig`, TOML-loadable and ``--set`` overridable; saved beside
+the outputs as ``process.toml``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from reconstruction.keypoints import DEFAULT_MODELS, KEYPOINT_MODELS
+from reconstruction.monocular.reconstruct import MonocularRunConfig
+from reconstruction.multiview.run import MultiviewConfig
+from reconstruction.process.events import ProcessError
+
+__all__ = ["BoxesConfig", "ExportConfig", "KEYPOINT_SOURCES", "KeypointsConfig", "ProcessConfig", "WindowsConfig"]
+
+#: ``models``: the shipped keypoint models on the recorded images (default); ``sim``: the simulator's noisy true
+#: keypoints recorded in the flight (``sim/keypoints2d``), for evaluation.
+KEYPOINT_SOURCES = ("models", "sim")
+
+
+@dataclasses.dataclass
+class BoxesConfig:
+    """The person's box per frame: the drone's recorded detections (``detections``, else the simulator's
+    ``sim/detections``), the offline smoother's track to choose among several boxes and to fill frames without
+    one (``use_smoother``), the ONNX person detector re-run on the frames still without a box (``detector_fill``)."""
+
+    min_score: float = 0.3  #: recorded boxes below this score are left out
+    use_smoother: bool = True
+    detector_fill: bool = True
+    detector_threads: int = 1  #: onnxruntime intra-op threads of the person detector
+    #: re-run the detector in gaps between boxed frames up to this long (s); longer gaps are left without a box
+    detector_max_gap_s: float = 2.0
+
+
+@dataclasses.dataclass
+class KeypointsConfig:
+    """The 2D keypoint step: ``source`` (:data:`KEYPOINT_SOURCES`), the models (>= 2 by default, fused per joint
+    with their confidences), onnxruntime ``threads`` per model, crops per model call (``batch_size``, also how often
+    ``cancel`` is checked) and frames per cached chunk (``chunk_frames``: what a resumed run does not redo)."""
+
+    source: str = "models"
+    models: list[str] = dataclasses.field(default_factory=lambda: list(DEFAULT_MODELS))
+    threads: int = 1
+    crop_scale: float = 1.25
+    batch_size: int = 16
+    chunk_frames: int = 64
+    #: fuse the models into one detector per camera (False: each model is a detector of its own in the fit)
+    fuse: bool = True
+    #: two models agree on a joint when their points lie within this fraction of the box's longer side
+    agree_fraction: float = 0.15
+    #: a model's joint below this confidence does not vote
+    min_confidence: float = 0.05
+
+
+@dataclasses.dataclass
+class WindowsConfig:
+    """A long flight is fitted in overlapping windows of ``window_s`` (the last ``overlap_s`` of one window are
+    the first of the next), cross-faded over the overlap into one motion: memory and time per window stay bounded."""
+
+    window_s: float = 60.0
+    overlap_s: float = 6.0
+    #: frames and poses this much beyond a window are given to its fit (the interpolation at its ends)
+    margin_s: float = 1.0
+
+
+@dataclasses.dataclass
+class ExportConfig:
+    """Outputs: ``motion.{bvh,npz,csv}`` (+ ``motion.rrd`` with ``rrd``) as ``skycap reconstruct`` always wrote, and
+    the named ``extra`` exporters registered with :func:`reconstruction.process.export.register_exporter`."""
+
+    rrd: bool = True
+    extra: list[str] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class ProcessConfig:
+    """``skycap process`` settings. ``method``: "multiview" / "monocular" / "" (multiview with >= 2 readable
+    drones, else monocular); ``sortie``: 0 = the whole flight, N = only sortie N; ``out_dir``: "" = the method's
+    folder of the flight; ``cache``: read and write the ``processing/`` step cache."""
+
+    method: str = ""
+    sortie: int = 0
+    out_dir: str = ""
+    cache: bool = True
+    boxes: BoxesConfig = dataclasses.field(default_factory=BoxesConfig)
+    keypoints: KeypointsConfig = dataclasses.field(default_factory=KeypointsConfig)
+    windows: WindowsConfig = dataclasses.field(default_factory=WindowsConfig)
+    multiview: MultiviewConfig = dataclasses.field(default_factory=MultiviewConfig)
+    monocular: MonocularRunConfig = dataclasses.field(default_factory=MonocularRunConfig)
+    export: ExportConfig = dataclasses.field(default_factory=ExportConfig)
+
+    def validate(self) -> "ProcessConfig":
+        k, w = self.keypoints, self.windows
+        if self.method not in ("", "multiview", "monocular"):
+            raise ProcessError(f"method={self.method!r}: use 'multiview', 'monocular' or '' (chosen by the drones)")
+        if k.source not in KEYPOINT_SOURCES:
+            raise ProcessError(f"keypoints.source={k.source!r}: use one of {', '.join(KEYPOINT_SOURCES)}")
+        bad = [m for m in k.models if m not in KEYPOINT_MODELS]
+        if k.source == "models" and (not k.models or bad):
+            raise ProcessError(f"keypoints.models={k.models}: name at least one of {', '.join(KEYPOINT_MODELS)}")
+        if k.threads < 1 or k.batch_size < 1 or k.chunk_frames < 1:
+            raise ProcessError("keypoints.threads, batch_size and chunk_frames must be >= 1")
+        if not (w.window_s > 0 and 0 <= w.overlap_s < w.window_s and w.margin_s >= 0):
+            raise ProcessError(f"windows: window_s={w.window_s} must be > 0 and 0 <= overlap_s={w.overlap_s} < "
+                               "window_s, margin_s >= 0")
+        if self.sortie < 0:
+            raise ProcessError(f"sortie={self.sortie}: 0 for the whole flight or a sortie number >= 1")
+        return self
+
+    @property
+    def sortie_or_none(self) -> int | None:
+        return self.sortie or None
