@@ -66,6 +66,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rc.add_argument("--out", type=Path, default=None, help="output folder (default: the method's folder of the flight)")
     rc.add_argument("--no-cache", action="store_true", help="neither read nor write FLIGHT_DIR/processing/")
     add_config_args(rc)
+    from reconstruction.jobs.config import add_job_args
+
+    add_job_args(rc)
     for m in methods:
         mod = _method_cli(m)
         if hasattr(mod, "add_reconstruct_args"):
@@ -172,7 +175,22 @@ def _process(args: argparse.Namespace) -> int:
     cfg = process_config(args)
     bar = ProgressBar()
     try:
-        result = process(args.flight_dir, cfg, progress=bar)
+        if getattr(args, "ray", None):
+            # on a Ray cluster: the same pipeline as a job (reconstruction.jobs), its events drive the same bar
+            from reconstruction.jobs import jobs_config_from_args, runner_from_config
+
+            with runner_from_config(jobs_config_from_args(args)) as runner:
+                job = runner.submit(args.flight_dir, cfg, processor="process")
+                unsubscribe = job.subscribe(bar)
+                try:
+                    result = job.result()
+                except KeyboardInterrupt:
+                    job.cancel()
+                    raise
+                finally:
+                    unsubscribe()
+        else:
+            result = process(args.flight_dir, cfg, progress=bar)
     finally:
         bar.close()
     print(json.dumps(result.summary, indent=2))

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from reconstruction.jobs.config import JobsConfig
+
 
 @dataclass
 class NetworkConfig:
@@ -86,6 +88,12 @@ class GsConfig:
     checklist: ChecklistConfig = field(default_factory=ChecklistConfig)
     geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
     keepout_zones: list[KeepOutZoneConfig] = field(default_factory=list)
+    #: where "process flight" runs: a local worker process (default) or a Ray cluster (``jobs.runner = "ray"``,
+    #: ``jobs.ray_address``)
+    jobs: JobsConfig = field(default_factory=JobsConfig)
+    #: ``--set`` overrides of the processing pipeline's ProcessConfig (``skycap process``), e.g.
+    #: ``['keypoints.models=["movenet_lightning", "blazepose_full"]']``; empty = its defaults (the keypoint models)
+    process_set: list[str] = field(default_factory=list)
 
     def validate(self) -> "GsConfig":
         """Refuse a fence or zone that cannot be flown (a :class:`skycap.config.ConfigError` naming it)."""

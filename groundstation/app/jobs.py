@@ -1,152 +1,118 @@
-"""Background jobs of the ground station: ``skycap reconstruct FLIGHT_DIR`` in a subprocess.
+"""Background jobs of the ground station: "process flight" as a job of :mod:`reconstruction.jobs` -- the pipeline
+``skycap process`` runs (boxes -> keypoint models -> fit -> exports, cached in the flight folder and resumable) on the
+app's runner: a local worker process by default, a Ray cluster with ``jobs.runner = "ray"`` (``GsConfig.jobs``).
 
-    job = ReconstructJob.submit("flights/f1")
-    job.progress()   # (state, stage, elapsed_s): state "running" / "done" / "failed" / "cancelled"
-    job.fraction()   # 0..1 by the reconstruction's stages
-    job.log()        # the process's output lines so far
-    job.cancel()
-    job.result()     # {"summary": {...}, "outputs": {...}} once done (None before; raises on failure)
+    runner = runner_from_config(cfg.jobs)
+    job = ProcessFlightJob.submit("flights/f1", runner, ['keypoints.source="sim"'])
+    job.progress()   # (state, stage, elapsed_s): state "queued" / "running" / "done" / "failed" / "cancelled"
+    job.fraction()   # 0..1 over the whole pipeline (each step weighted by its usual share of the time)
+    job.log()        # one line per step change, and the worker's log lines
+    job.cancel()     # stops at the pipeline's next batch; finished steps stay cached (processing again resumes)
+    job.result()     # {"summary", "method", "outputs"} once done (None before, or cancelled; raises on failure)
 
-No Qt here: the widgets poll it.
+No Qt and no torch here (the worker imports the pipeline; its result comes back as plain data): the widgets poll it.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import os
-import re
-import signal
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
+from typing import Any
 
 from flightdata.folder import FlightFolder
+from reconstruction.jobs import Job, JobCancelled, JobStatus
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["JobError", "ReconstructJob", "list_flights"]
+__all__ = ["JobError", "ProcessFlightJob", "STEP_WEIGHTS", "list_flights"]
 
 
 class JobError(SkycapError):
-    """A background job that failed (its log says why)."""
+    """A background job that could not start or failed (its log says why)."""
 
 
-#: the reconstruction's log lines that mark its stages -> (fraction done, stage shown); ``skycap reconstruct`` reports
-#: no fraction on a pipe (its bars need a terminal), so progress advances by these milestones
-_MILESTONES = (("read the whole flight", 0.15, "read the recordings"), ("read sortie", 0.15, "read the recordings"),
-               (" reconstruction of ", 0.2, "reading observations"), ("fit (", 0.3, "fitting the body model"),
-               ("fit of", 0.3, "fitting the body model"), ("wrote ", 0.95, "writing the outputs"))
-_LOG_LINE = re.compile(r"^\S+ \S+ (INFO|WARNING|ERROR) (\S+): (.*)$")
+#: the pipeline's steps and their usual share of the processing time (the keypoint models dominate), for one
+#: progress bar over the whole job
+STEP_WEIGHTS: dict[str, float] = {"boxes": 0.1, "keypoints": 0.55, "fit": 0.3, "export": 0.05}
+_STAGE_NAMES = {"boxes": "finding the person (boxes)", "keypoints": "2D keypoints (models)",
+                "fit": "fitting the body model", "export": "writing the outputs"}
 
 
-class ReconstructJob:
-    """``skycap reconstruct FLIGHT_DIR`` as a child process (its own process group: cancel stops it all)."""
+class ProcessFlightJob:
+    """"process flight" of one flight folder, as a :class:`reconstruction.jobs.Job` (processor
+    ``"process_summary"``), seen the way the Flights tab shows it."""
 
-    def __init__(self, flight_dir: Path, cmd: list[str]):
-        self.flight = FlightFolder(flight_dir)
-        self.cmd = cmd
-        self._lines: list[str] = []
-        self._lock = threading.Lock()
-        self._stage = "starting"
-        self._fraction = 0.0
-        self._state = "running"
-        self._t0 = time.monotonic()
-        self._t_wall0 = time.time()
-        self._t_end: float | None = None
-        self._cancelled = False
-        self._result: dict | None = None
-        self._error = ""
-        log.info("process flight: %s", " ".join(cmd))
-        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
-                                      start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self._reader = threading.Thread(target=self._read, name="reconstruct-job", daemon=True)
-        self._reader.start()
+    def __init__(self, job: Job, flight: FlightFolder):
+        self.job = job
+        self.flight = flight
 
     @classmethod
-    def submit(cls, flight_dir: str | Path, extra_args: list[str] | None = None) -> "ReconstructJob":
+    def submit(cls, flight_dir: str | Path, runner: Any, overrides: list[str] | None = None) -> "ProcessFlightJob":
+        """Submit ``flight_dir`` to ``runner`` (a LocalRunner / RayRunner); ``overrides``: ``--set`` overrides of
+        the pipeline's ProcessConfig (e.g. ``['keypoints.source="sim"']``)."""
         flight = FlightFolder(flight_dir)
         if not flight.has_recordings():
             raise JobError(f"{flight.path} holds no drone recording (<drone>.sNNN.mcap): nothing to process")
-        return cls(flight.path, [sys.executable, "-m", "apps.cli", "reconstruct", str(flight.path),
-                                 *(extra_args or [])])
-
-    def _read(self) -> None:
-        assert self._proc.stdout is not None
-        for line in self._proc.stdout:
-            line = line.rstrip("\n")
-            with self._lock:
-                self._lines.append(line)
-                m = _LOG_LINE.match(line)
-                if m:
-                    for marker, frac, stage in _MILESTONES:
-                        if marker in m.group(3) and frac >= self._fraction:
-                            self._fraction, self._stage = frac, stage
-        code = self._proc.wait()
-        with self._lock:
-            self._t_end = time.monotonic()
-            if self._cancelled:
-                self._state = "cancelled"
-            elif code != 0:
-                self._state, self._error = "failed", f"skycap reconstruct exited with code {code}"
-            else:
-                try:
-                    self._result = self._parse()
-                    self._state = "done"
-                except Exception as e:  # noqa: BLE001 - shown to the operator
-                    self._state, self._error = "failed", f"no result: {e}"
-            self._stage = self._state
-            if self._state == "done":
-                self._fraction = 1.0
-
-    def _parse(self) -> dict:
-        """The summary.json the method wrote (newest of the method folders) and where its outputs are."""
-        best = None
-        for name in ("multiview", "monocular"):
-            p = self.flight.reconstruction_dir(name) / "summary.json"
-            if p.exists() and p.stat().st_mtime >= self._t_wall0 - 1 and (best is None or p.stat().st_mtime > best.stat().st_mtime):
-                best = p
-        if best is None:
-            raise JobError(f"no reconstruction summary.json written under {self.flight.path}")
-        d = best.parent
-        method = next(m for m in ("multiview", "monocular") if self.flight.reconstruction_dir(m) == d)
-        return {"summary": json.loads(best.read_text()), "method": method,
-                "outputs": {"dir": str(d), "bvh": sorted(str(p) for p in d.glob("*.bvh")),
-                            "files": sorted(p.name for p in d.iterdir())}}
+        job = runner.submit(flight.path, list(overrides or []), processor="process_summary")
+        log.info("process flight %s: job %s on %s", flight.path, job.id, job.runner_name)
+        return cls(job, flight)
 
     def progress(self) -> tuple[str, str, float]:
-        """(state, stage, elapsed_s): state "running", "done", "failed" or "cancelled"."""
-        with self._lock:
-            end = self._t_end if self._t_end is not None else time.monotonic()
-            return self._state, self._stage, end - self._t0
+        """(state, stage, elapsed_s): state "queued", "running", "done", "failed" or "cancelled"."""
+        st = self.job.status
+        ev = self.job.progress
+        if st == JobStatus.RUNNING:
+            stage = "starting (loading the models)" if ev is None else _STAGE_NAMES.get(ev.step, ev.step)
+            if ev is not None and ev.eta_s is not None and ev.fraction < 1.0:
+                stage += f", {ev.eta_s:.0f} s left in this step"
+        else:
+            stage = str(st)
+        return str(st), stage, self.job.elapsed_s
 
     def fraction(self) -> float:
-        """0..1 by the stages passed (1 when done)."""
-        with self._lock:
-            return 1.0 if self._state == "done" else self._fraction
+        """0..1 over the whole pipeline (1 when done)."""
+        if self.job.status == JobStatus.DONE:
+            return 1.0
+        ev = self.job.progress
+        if ev is None or ev.step not in STEP_WEIGHTS:
+            return 0.0
+        steps = list(STEP_WEIGHTS)
+        before = sum(STEP_WEIGHTS[s] for s in steps[: steps.index(ev.step)])
+        return min(1.0, before + STEP_WEIGHTS[ev.step] * ev.fraction)
 
     def log(self) -> list[str]:
-        with self._lock:
-            return list(self._lines)
+        lines, last = [], None
+        for ev in self.job.events:
+            if ev.step != last:
+                lines.append(f"[{ev.elapsed_s:6.1f} s] step {ev.step}: {ev.message}")
+                last = ev.step
+        return lines + self.job.log
 
     def cancel(self) -> None:
-        if self._proc.poll() is None:
-            self._cancelled = True
-            log.info("cancelling the reconstruction of %s", self.flight.path)
-            os.killpg(self._proc.pid, signal.SIGTERM)
+        if not self.job.done():
+            log.info("cancelling the processing of %s", self.flight.path)
+            self.job.cancel()
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        self._reader.join(timeout_s)
-        return not self._reader.is_alive()
+        return self.job.wait(timeout_s)
 
     def result(self) -> dict | None:
-        with self._lock:
-            if self._state == "failed":
-                raise JobError(f"{self._error}; last lines: {' | '.join(self._lines[-5:])}")
-            return self._result
+        """{"summary", "method", "outputs": {"dir", "bvh", "files", name: path}} once done; None while running or
+        when cancelled; a failure raises :class:`JobError` with the worker's message."""
+        if not self.job.done():
+            return None
+        try:
+            res = self.job.result(0)
+        except JobCancelled:
+            return None
+        except Exception as e:  # noqa: BLE001 - the worker's error, shown to the operator
+            raise JobError(f"processing failed: {type(e).__name__}: {e}; last lines: "
+                           f"{' | '.join(self.log()[-5:])}") from e
+        d = Path(res["out_dir"])
+        outputs = {**res["outputs"], "dir": str(d), "bvh": sorted(str(p) for p in d.glob("*.bvh")),
+                   "files": sorted(p.name for p in d.iterdir()) if d.is_dir() else []}
+        return {"summary": res["summary"], "method": res["method"], "outputs": outputs}
 
 
 def list_flights(root: str | Path) -> list[dict]:

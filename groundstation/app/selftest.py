@@ -268,10 +268,10 @@ def run_selftest(out: str | Path, drones: int = 2, orbit_s: float = 20.0, proces
                 win.flights.setCurrentRow(i)
         QTest.mouseClick(win.process_btn, Qt.LeftButton)
         # the screenshot once the reconstruction reached a stage (its imports take a few seconds)
-        pump_until(lambda: win.job is None or win.job.fraction() >= 0.3 or win.job.progress()[0] != "running", 90)
+        pump_until(lambda: win.job is None or win.job.fraction() >= 0.3 or win.job.progress()[0] not in ("queued", "running"), 90)
         pump(1.0)
         step("process_flight_running", win.job is not None, win.job_stage.text(), "Flights")
-        ok = pump_until(lambda: win.job is not None and win.job.progress()[0] != "running", process_timeout_s)
+        ok = pump_until(lambda: win.job is not None and win.job.progress()[0] not in ("queued", "running"), process_timeout_s)
         if not ok and win.job is not None:
             win.job.cancel()
         pump(1.5)

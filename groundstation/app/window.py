@@ -22,9 +22,10 @@ from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QFormLayout, QGridL
                                QSplitter, QTableWidget, QTableWidgetItem, QTabWidget, QToolBar, QVBoxLayout, QWidget)
 
 from groundstation.app.config import GsConfig
-from groundstation.app.jobs import JobError, ReconstructJob, list_flights
+from groundstation.app.jobs import JobError, ProcessFlightJob, list_flights
 from groundstation.app.model import ACTIONS, PLAN_MODES, CommandRun, FleetModel, PlanForm
 from groundstation.app.scene3d import Live3DView, SkeletonPlayer
+from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
@@ -359,7 +360,8 @@ class MainWindow(QMainWindow):
         self.pending: tuple[str, list[str]] | None = None
         self.last_run: CommandRun | None = None
         self.plan_run: CommandRun | None = None
-        self.job: ReconstructJob | None = None
+        self.job: ProcessFlightJob | None = None
+        self._job_runner = None  # the jobs runner (reconstruction.jobs), made at the first "process flight"
         self.job_result: dict | None = None
         self._build()
         self.table_timer = QTimer(self)
@@ -719,16 +721,20 @@ class MainWindow(QMainWindow):
                 return
             path = it.data(Qt.UserRole)
         try:
-            self.job = ReconstructJob.submit(path)
-        except JobError as e:
+            if self._job_runner is None:
+                from reconstruction.jobs import runner_from_config
+
+                self._job_runner = runner_from_config(self.cfg.jobs)
+            self.job = ProcessFlightJob.submit(path, self._job_runner, self.cfg.process_set)
+        except SkycapError as e:
             self.job_stage.setText(str(e))
             self.model.log_event("warning", "", f"process flight: {e}")
             return
         self.job_result = None
-        self.model.log_event("info", "", f"process flight {path}: skycap reconstruct started")
+        self.model.log_event("info", "", f"process flight {path}: job {self.job.job.id} on {self.job.job.runner_name}")
         self.job_progress.setRange(0, 100)
         self.job_progress.setValue(0)
-        self.job_progress.setFormat("%p % (by stage)")
+        self.job_progress.setFormat("%p %")
         self.cancel_job_btn.setEnabled(True)
         self.process_btn.setEnabled(False)
         self.job_log.clear()
@@ -749,7 +755,7 @@ class MainWindow(QMainWindow):
             self.job_log.appendPlainText(line)
         self._job_lines = len(lines)
         self.job_stage.setText(f"{state}: {stage} ({elapsed:.0f} s)")
-        if state == "running":
+        if state in ("queued", "running"):
             self.job_progress.setValue(round(100 * job.fraction()))
             return
         self.job_timer.stop()
@@ -890,6 +896,9 @@ class MainWindow(QMainWindow):
     def closeEvent(self, ev) -> None:
         if self.job is not None:
             self.job.cancel()
+        if self._job_runner is not None:
+            self._job_runner.close(cancel=True, timeout=10)
+            self._job_runner = None
         super().closeEvent(ev)
 
 

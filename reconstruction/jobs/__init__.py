@@ -10,7 +10,7 @@ status, progress events, cancel and result (a library; the ground station's Qt m
     with RayRunner("127.0.0.1:6379") as ray_runner:    # the same API on a Ray cluster
         res = ray_runner.submit("flights/f1", cfg, processor="process").result()
 
-A processor is ``fn(flight_dir, cfg, progress, cancel) -> result`` named by a registered name or import path
+A processor is ``fn(flight_dir, cfg, *, progress, cancel) -> result`` (progress and cancel passed by keyword) named by a registered name or import path
 (:mod:`reconstruction.jobs.registry`); it may spread independent units over the runner with
 :func:`reconstruction.jobs.units.parallel_map`.
 """

@@ -60,7 +60,7 @@ def execute(spec: str, flight_dir: str, cfg: Any, emit: Emit, cancel: threading.
         try:
             fn = resolve_processor(spec)
             with unit_context(units or SerialUnits(), cancel):
-                result = fn(Path(flight_dir), cfg, progress, cancel)
+                result = fn(Path(flight_dir), cfg, progress=progress, cancel=cancel)
             payload = pickle.dumps(result)
         except BaseException as e:  # noqa: BLE001 - every outcome goes back to the submitter
             if cancel.is_set():

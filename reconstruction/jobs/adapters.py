@@ -1,5 +1,6 @@
 """Today's flight reconstruction (:func:`reconstruction.api.reconstruct_flight`: the simulator's 2D keypoints, the
-multi-view or monocular fit, the exports) as a job processor (registered as ``"reconstruct"``)."""
+multi-view or monocular fit, the exports) as a job processor (registered as ``"reconstruct"``), and ``skycap process`` with a plain-data result
+(``"process_summary"``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Any
 
 from reconstruction.jobs.events import JobCancelled, ProgressEvent
 
-__all__ = ["ReconstructJobConfig", "reconstruct_job"]
+__all__ = ["ReconstructJobConfig", "process_summary_job", "reconstruct_job"]
 
 
 @dataclasses.dataclass
@@ -56,3 +57,16 @@ def reconstruct_job(flight_dir: Path, cfg: ReconstructJobConfig | None, progress
     stages("load", 0, 1)  # until reconstruct_flight reports: importing the reconstruction (torch, the body model)
     return reconstruct_flight(flight_dir, cfg.method, cfg.config, sortie=cfg.sortie, out_dir=cfg.out_dir,
                               progress=stages)
+
+
+def process_summary_job(flight_dir: Path, cfg: Any, *, progress: Callable[[Any], None] | None = None,
+                        cancel: threading.Event | None = None) -> dict:
+    """:func:`reconstruction.process.process` (``cfg``: a ProcessConfig or a list of its ``--set`` overrides) whose
+    result is returned as plain data -- ``{"method", "summary", "out_dir", "outputs": {name: path}}`` -- so that the
+    submitter (the ground station) reads it without importing the pipeline (torch). Registered as
+    ``"process_summary"``."""
+    from reconstruction.process import process
+
+    res = process(flight_dir, cfg, progress=progress, cancel=cancel)
+    return {"method": res.method, "summary": res.summary, "out_dir": str(res.out_dir),
+            "outputs": {k: str(v) for k, v in res.outputs.items()}}

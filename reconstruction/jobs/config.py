@@ -40,7 +40,7 @@ class JobsConfig:
     ray_cpus_per_job: float = 1.0
     ray_unit_cpus: float = 1.0
     #: the processing callable: a registered name ("reconstruct", "process") or an import path "module:function"
-    processor: str = "reconstruct"
+    processor: str = "process"
     #: local: seconds a cancelled worker has to stop by itself before it is terminated
     cancel_grace_s: float = 30.0
 

@@ -74,7 +74,7 @@ class LocalRunner:
         with self._lock:
             return list(self._jobs)
 
-    def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "reconstruct") -> Job:
+    def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "process") -> Job:
         """Queue ``processor(flight_dir, config, progress, cancel)``; it starts when a worker is free."""
         spec = processor_spec(processor)
         flight_dir = Path(flight_dir).resolve()

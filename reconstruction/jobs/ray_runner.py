@@ -94,7 +94,7 @@ class RayRunner:
         with self._lock:
             return list(self._jobs)
 
-    def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "reconstruct") -> Job:
+    def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "process") -> Job:
         """Submit ``processor(flight_dir, config, progress, cancel)`` as a Ray task; it runs when the cluster has
         ``num_cpus_per_job`` CPUs free (queued until then)."""
         ray = _ray()

@@ -29,6 +29,8 @@ _REGISTRY: dict[str, str] = {
     "reconstruct": "reconstruction.jobs.adapters:reconstruct_job",
     # the processing pipeline of issue 19 (boxes -> keypoint models -> fit -> exports), cached steps
     "process": "reconstruction.process:process",
+    # the same, its result as plain data (method, summary, output paths) for a submitter that does not import torch
+    "process_summary": "reconstruction.jobs.adapters:process_summary_job",
 }
 
 

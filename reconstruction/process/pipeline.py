@@ -108,11 +108,17 @@ def _skip(d: str, e: BaseException, drones: list[str], skipped: dict[str, str], 
         drones.remove(d)
 
 
-def process(flight_dir, cfg: ProcessConfig | None = None, *, progress: ProgressSink | None = None,
+def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progress: ProgressSink | None = None,
             cancel: threading.Event | None = None) -> ProcessResult:
-    """Process a recorded flight (see the module doc). ``flight_dir``: a :class:`FlightFolder` or its path."""
+    """Process a recorded flight (see the module doc). ``flight_dir``: a :class:`FlightFolder` or its path. ``cfg``: a
+    :class:`ProcessConfig`, or a list of its ``--set`` overrides (``["keypoints.source=\"sim\""]``: what a caller
+    that does not import the pipeline -- the ground station submitting a job -- sends)."""
     t_begin = time.perf_counter()
     flight = flight_dir if isinstance(flight_dir, FlightFolder) else FlightFolder(flight_dir)
+    if isinstance(cfg, (list, tuple)):
+        from skycap.config import load_config
+
+        cfg = load_config(ProcessConfig, None, [str(o) for o in cfg])
     cfg = (cfg or ProcessConfig()).validate()
     sortie = cfg.sortie_or_none
     logs = flight.drone_logs(sortie=sortie)

@@ -1,72 +1,68 @@
-"""The ground station's job interface (submit / progress / log / cancel / result) over stand-in processes, and the
-flight list; the real ``skycap reconstruct`` runs in the self-test test."""
+"""The ground station's "process flight" job (groundstation.app.jobs.ProcessFlightJob) over a real jobs runner
+(reconstruction.jobs.LocalRunner: a spawned worker process) running a stand-in processor with the pipeline's shape
+(tests/groundstation/fake_process.py); the real pipeline runs in the self-test test. And the flight list."""
 
 from __future__ import annotations
 
 import json
-import sys
-import time
-import textwrap
 
 import pytest
 
-from groundstation.app.jobs import JobError, ReconstructJob, list_flights
+from flightdata.folder import FlightFolder
+from groundstation.app.jobs import JobError, ProcessFlightJob, list_flights
+from reconstruction.jobs import LocalRunner
+
+FAKE = "tests.groundstation.fake_process:run"
 
 
-def _script(tmp_path, body: str) -> list[str]:
-    p = tmp_path / "fake_reconstruct.py"
-    p.write_text(textwrap.dedent(body))
-    return [sys.executable, str(p)]
+@pytest.fixture(scope="module")
+def runner():
+    with LocalRunner(workers=1, threads_per_worker=1, cancel_grace_s=5) as r:
+        yield r
 
 
-def test_job_progress_log_and_result(tmp_path):
-    flight = tmp_path / "f1"
-    flight.mkdir()
-    cmd = _script(tmp_path, f"""
-        import json, pathlib, time
-        print("2026-01-01 00:00:00,000 INFO reconstruction.flight: read the whole flight of X", flush=True)
-        time.sleep(0.6)
-        print("2026-01-01 00:00:01,000 INFO reconstruction.multiview.run: multiview fit (product) of 2 cameras", flush=True)
-        time.sleep(0.6)
-        d = pathlib.Path({str(flight)!r}) / "reconstruction"
-        d.mkdir()
-        (d / "motion.bvh").write_text("HIERARCHY")
-        (d / "summary.json").write_text(json.dumps({{"frames": 7, "cameras": 2}}))
-        print("2026-01-01 00:00:02,000 INFO reconstruction.multiview.run: wrote motion.bvh", flush=True)
-    """)
-    job = ReconstructJob(flight, cmd)
-    seen = set()
-    while job.progress()[0] == "running":
-        seen.add((job.progress()[1], job.fraction()))
-        time.sleep(0.05)
-    assert job.wait(10)
-    assert ("fitting the body model", 0.3) in seen, seen
+def _job(runner, flight, *opts) -> ProcessFlightJob:
+    flight.mkdir(exist_ok=True)
+    return ProcessFlightJob(runner.submit(flight, list(opts), processor=FAKE), FlightFolder(flight))
+
+
+def test_job_progress_over_the_steps_log_and_result(runner, tmp_path):
+    job = _job(runner, tmp_path / "f1", "step_s=0.1")
+    seen = []
+    while not job.wait(0.05):
+        seen.append((job.progress()[1], job.fraction()))
+    fracs = [f for _, f in seen]
+    assert fracs == sorted(fracs) and 0.0 < max(fracs) < 1.0, seen  # one bar over the steps, never backwards
+    assert any(stage.startswith("fitting the body model") for stage, _ in seen), seen
     state, stage, elapsed = job.progress()
     assert state == "done" and job.fraction() == 1.0 and elapsed > 1.0
     res = job.result()
-    assert res["summary"] == {"frames": 7, "cameras": 2} and res["method"] == "multiview"
-    assert res["outputs"]["bvh"][0].endswith("motion.bvh")
-    assert any("wrote motion.bvh" in line for line in job.log())
+    assert res["summary"]["cameras"] == 2 and res["method"] == "multiview"
+    assert res["outputs"]["bvh"][0].endswith("motion.bvh") and "summary.json" in res["outputs"]["files"]
+    assert [line.split("step ")[1].split(":")[0] for line in job.log() if "step " in line] == \
+        ["boxes", "keypoints", "fit", "export"]
 
 
-def test_job_failure_is_an_error_naming_the_exit_code(tmp_path):
-    job = ReconstructJob(tmp_path, _script(tmp_path, "import sys; print('boom'); sys.exit(3)"))
-    assert job.wait(10)
+def test_job_failure_is_an_error_naming_the_cause(runner, tmp_path):
+    job = _job(runner, tmp_path / "f2", "fail=1")
+    assert job.wait(60)
     assert job.progress()[0] == "failed"
-    with pytest.raises(JobError, match="exited with code 3.*boom"):
+    with pytest.raises(JobError, match="ValueError: the fit diverged"):
         job.result()
 
 
-def test_job_cancel(tmp_path):
-    job = ReconstructJob(tmp_path, _script(tmp_path, "import time; time.sleep(30)"))
+def test_job_cancel(runner, tmp_path):
+    job = _job(runner, tmp_path / "f3", "step_s=1.0")
+    while job.progress()[0] != "running":
+        job.wait(0.05)
     job.cancel()
-    assert job.wait(10)
+    assert job.wait(30)
     assert job.progress()[0] == "cancelled" and job.result() is None
 
 
-def test_submit_refuses_a_folder_without_recordings_and_lists_flights(tmp_path):
+def test_submit_refuses_a_folder_without_recordings_and_lists_flights(runner, tmp_path):
     with pytest.raises(JobError, match="no drone recording"):
-        ReconstructJob.submit(tmp_path)
+        ProcessFlightJob.submit(tmp_path, runner)
     f = tmp_path / "flights" / "a"
     f.mkdir(parents=True)
     (f / "drone_1.s001.mcap").write_bytes(b"x" * 10)

@@ -38,16 +38,18 @@ def test_gs_selftest_whole_session_with_screenshots(tmp_path):
     assert processed["cameras"] == 2 and processed["frames"] > 0, processed
     assert report["processed_outputs"]["bvh"] and os.path.exists(report["processed_outputs"]["bvh"][0])
 
-    # the job interface: cancel stops the reconstruction and says so (no result, no failure)
-    from groundstation.app.jobs import ReconstructJob, list_flights
+    # the job interface: cancel stops the processing and says so (no result, no failure)
+    from groundstation.app.jobs import ProcessFlightJob, list_flights
+    from reconstruction.jobs import LocalRunner
 
     flights = list_flights(out / "flights")
     assert flights and flights[0]["processed"] == ["multiview"] and flights[0]["drones"] == ["drone_1", "drone_2"]
-    job = ReconstructJob.submit(flights[0]["path"], ["--mv-out", str(tmp_path / "again")])
-    assert job.progress()[0] == "running"
-    job.cancel()
-    assert job.wait(30)
-    assert job.progress()[0] == "cancelled" and job.result() is None
+    with LocalRunner(workers=1, threads_per_worker=1, cancel_grace_s=10) as runner:
+        job = ProcessFlightJob.submit(flights[0]["path"], runner, [f'out_dir="{tmp_path / "again"}"'])
+        assert job.progress()[0] in ("queued", "running")
+        job.cancel()
+        assert job.wait(60)
+        assert job.progress()[0] == "cancelled" and job.result() is None
 
 
 def test_gs_selftest_tracking_formation(tmp_path):

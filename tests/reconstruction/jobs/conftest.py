@@ -1,20 +1,8 @@
-"""Shared fixtures of the job tests: small flight folders, and one Ray head on loopback for the session."""
+"""Shared fixtures of the job tests: small flight folders (the Ray head on loopback: tests/reconstruction/conftest.py)."""
 
 from __future__ import annotations
 
 import pytest
-
-
-@pytest.fixture(scope="session")
-def ray_runner():
-    """A RayRunner on a one-machine Ray cluster started here on 127.0.0.1 (2 CPUs, no dashboard), shut down at the
-    end of the session."""
-    pytest.importorskip("ray", reason="Ray is not installed (pip install 'skycap[ray]')")
-    from reconstruction.jobs.ray_runner import RayRunner
-
-    runner = RayRunner("local", num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1")
-    yield runner
-    runner.close()
 
 
 @pytest.fixture(scope="session")
