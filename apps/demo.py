@@ -86,7 +86,7 @@ from comms.faults import MalformedDetectionsInjector, MalformedFloodInjector
 from comms.outsider import OutsiderProbe
 from comms.security import FleetKeys
 from comms.transport import Transport, TransportConfig
-from evaluation.flight import (format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
+from evaluation.flight import (format_accuracy, format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
                                summarize_tracking)
 from flightdata.folder import FlightFolder
 from flightdata.recorder import Recorder
@@ -722,8 +722,10 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if recon.get("exit_code") == 0 and "error" not in summary:
         # simulated flight: score the reconstruction against the simulator's truth (all frames, steady orbit)
         npz = (recon.get("summary") or {}).get("outputs", {}).get("npz")  # where the method wrote its motion
-        recon["accuracy_vs_truth"] = reconstruction_accuracy(out, motion_npz=npz,
-                                                             window_s=summary["fleet"]["steady_orbit_window_s"])
+        recon["accuracy_vs_truth"] = reconstruction_accuracy(
+            out, motion_npz=npz, window_s=summary["fleet"]["steady_orbit_window_s"],
+            keypoints_source=recon.get("keypoints_source") or (recon.get("summary") or {}).get("keypoints_source"),
+            position_grade=summary["autopilot"].get("position_estimate"))
     summary["reconstruction"] = recon
     if cfg.faults != FaultsDemoConfig():
         summary["faults"] = fault_report
@@ -740,10 +742,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         print(format_tracking_table(summary["tracking"]), flush=True)
     acc = recon.get("accuracy_vs_truth") or {}
     if acc:
-        print(f"reconstruction vs truth: steady orbit MPJPE {acc.get('mpjpe_mm_window', float('nan')):.1f} mm, "
-              f"PA-MPJPE {acc.get('pa_mpjpe_mm_window', float('nan')):.1f} mm over {acc.get('frames_scored_window', 0)} "
-              f"frames; whole flight incl. take-off and landing MPJPE {acc['mpjpe_mm']:.1f} mm, "
-              f"PA-MPJPE {acc['pa_mpjpe_mm']:.1f} mm", flush=True)
+        print(format_accuracy(acc), flush=True)
     if sortie_error:
         print(f"sortie {sortie_error['sortie']} of {cfg.sorties} FAILED: {sortie_error['error']}", flush=True)
     print(f"summary: {flight.summary_path}", flush=True)
