@@ -8,6 +8,16 @@
 
     skycap demo --autopilot px4 --drones 2             # the same on real PX4 SITL (SIH) from ../shared/px4-sitl
     skycap demo --sorties 2                            # take off, orbit, land twice without restarting anything
+    skycap demo --motion ../shared/data/mocap/cmu/005/005_10.bvh    # the person performs a recorded motion
+
+``--motion FILE.bvh`` (``motion.*``, :class:`simulator.scene.person.PersonMotionConfig`): the simulated person
+performs that recorded motion (any CMU-style BVH: rig, axes and unit detected, what was assumed logged) instead of
+the default walk with stops, placed at the orbit's centre on the ground from the simulation's start, looped
+(``motion.end = "loop"``, each seam cross-faded) or held at its last frame (``"clamp"``). The file is read before
+anything starts (a missing file, one without the needed joints or of an unknown unit is a clear error);
+``config.toml`` names it with its sha256 (``motion.file``, ``motion.sha256``) and ``summary.json`` under
+``motion`` (file, sha256, rig, frames, unit and height assumed, ground, loop/clamp and a note of how often it
+played over the flight).
 
 ``--autopilot px4``: the vehicles are real PX4 SITL instances with PX4's SIH simulator (``--px4-dir DIR``,
 default ``../shared/px4-sitl`` beside the checkout or ``$SKYCAP_PX4_SITL``; refused with a clear error when it
@@ -93,6 +103,7 @@ from flightdata.recorder import Recorder
 from groundstation.fleet import FleetClient, make_orbit_plan
 from onboard.orbit import evenly_spaced_phases
 from shared_msgs import SimTruth, keys
+from simulator.scene.person import PersonMotionConfig, load_bvh_motion
 from skycap.childproc import ProcessSupervisor
 from skycap.config import ConfigError, add_config_args, config_from_args, save_config
 from skycap.errors import SkycapError
@@ -232,6 +243,9 @@ class DemoConfig:
     mode: str = "orbit"
     track: TrackDemoConfig = field(default_factory=TrackDemoConfig)
     faults: FaultsDemoConfig = field(default_factory=FaultsDemoConfig)
+    #: the person performs this recorded motion (``--motion FILE.bvh``; placed at the orbit's centre in orbit mode);
+    #: ``motion.file`` "" = the simulator's default walk with stops
+    motion: PersonMotionConfig = field(default_factory=PersonMotionConfig)
     #: timeouts (s)
     ready_timeout_s: float = 60.0
     takeoff_timeout_s: float = 60.0
@@ -327,6 +341,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--px4-dir", default=None, help="the PX4 SITL build for --autopilot px4 (default ../shared/px4-sitl)")
     p.add_argument("--sorties", type=int, default=None,
                    help="take off, orbit and land this many times without restarting anything (default 1)")
+    p.add_argument("--motion", default=None, metavar="FILE.bvh",
+                   help="the person performs this recorded motion (any CMU-style BVH; motion.end=loop|clamp)")
     p.add_argument("--insecure", action="store_true", default=None,
                    help="DEBUGGING ONLY: plaintext Zenoh, no certificates, no access control")
     add_config_args(p)
@@ -339,7 +355,8 @@ def _run(args: argparse.Namespace) -> int:
                                                 "autopilot": getattr(args, "autopilot", None),
                                                 "px4_dir": getattr(args, "px4_dir", None),
                                                 "sorties": getattr(args, "sorties", None),
-                                                "insecure": getattr(args, "insecure", None)})
+                                                "insecure": getattr(args, "insecure", None),
+                                                "motion.file": getattr(args, "motion", None)})
     summary = run_demo(cfg.validate())
     return 0 if summary is not None and "sortie_error" not in summary else 1
 
@@ -377,6 +394,12 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     px4_folder = _px4_folder(cfg) if px4 else None  # before anything is made: a clear error when PX4 is absent
     if not cfg.out:
         cfg = dataclasses.replace(cfg, out=time.strftime("flights/demo-%Y%m%d-%H%M%S", time.gmtime()))
+    motion = None
+    if cfg.motion.file:  # read before anything starts: a file the person cannot play is a clear error now
+        if cfg.mode == "orbit":  # at the plan's centre
+            cfg = dataclasses.replace(cfg, motion=dataclasses.replace(cfg.motion, center_ne_m=list(cfg.orbit.center_ned_m[:2])))
+        motion = load_bvh_motion(cfg.motion)
+        cfg = dataclasses.replace(cfg, motion=dataclasses.replace(cfg.motion, file=str(motion.path), sha256=motion.sha256))
     flight = FlightFolder(cfg.out)
     out = flight.path
     if flight.has_recordings() or flight.summary_path.exists():
@@ -397,6 +420,12 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if cfg.orbit.spawn_under_slots:  # the built-in vehicles' spawn points, PX4's homes
         spawn = ", ".join(f"[{n}, {e}]" for n, e in _spawn_positions(cfg, phases))
         sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")
+    if motion is not None:  # the simulator plays the same file (and checks its sha256)
+        mc = cfg.motion
+        sim_set += [f"motion.file={json.dumps(mc.file)}", f"motion.sha256={json.dumps(mc.sha256)}",
+                    f"motion.end={json.dumps(mc.end)}", f"motion.loop_blend_s={mc.loop_blend_s}",
+                    f"motion.units_to_m={mc.units_to_m}", f"motion.center_ne_m={json.dumps(list(mc.center_ne_m))}",
+                    f"motion.skip_first_frame={json.dumps(mc.skip_first_frame)}"]
     fc = cfg.faults
     sim_set += cfg.sim_set
     save_config(cfg, flight.config_path)
@@ -676,7 +705,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         bus.close()
         if temp_keys:
             shutil.rmtree(fleet_keys.folder.parent, ignore_errors=True)  # the mkdtemp folder
-    log.info("flight done in %.0f s; files in %s", time.monotonic() - t_begin, out)
+    played_s = time.monotonic() - t_begin  # the simulator (and the person's motion) started about then
+    log.info("flight done in %.0f s; files in %s", played_s, out)
 
     recon: dict = {"ran": False}
     if cfg.reconstruct:
@@ -714,6 +744,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                               for k, p in enumerate(plans[:orbits_flown[0]])]
         if sortie_error:
             summary["sortie_error"] = sortie_error
+    if motion is not None:
+        summary["motion"] = motion.info(played_s)
     summary["autopilot"] = _autopilot_report(cfg, px4_folder)
     summary["security"] = _security_report(fleet_keys, temp_keys)
     if track:
@@ -731,6 +763,10 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         summary["faults"] = fault_report
     flight.summary_path.write_text(json.dumps(summary, indent=2))
     print(f"autopilot: {summary['autopilot']['kind']}; transport: {summary['security']['transport']}", flush=True)
+    if motion is not None:
+        mi = summary["motion"]
+        print(f"motion: {mi['file']} (sha256 {mi['sha256'][:12]}..., rig {mi['rig']}, unit {mi['units']}, person about "
+              f"{mi['height_m']:.2f} m tall; {mi['note']})", flush=True)
     for entry in summary.get("sorties", []):
         print(f"sortie {entry['sortie']} (frames, rates, min_separation_m and flight_s: whole flight):\n"
               + format_table(entry), flush=True)
