@@ -316,7 +316,7 @@ def format_accuracy(acc: dict) -> str:
     def row(label: str, sfx: str) -> str:
         g = acc.get(f"per_group_mm{sfx}", {})
         groups = ", ".join(f"{k} {v['mpjpe_mm']:.1f}" for k, v in g.items())
-        return (f"  {label:<36s} MPJPE {acc[f'mpjpe_mm{sfx}']:6.1f}  PA-MPJPE {acc[f'pa_mpjpe_mm{sfx}']:6.1f}  "
+        return (f"  {label:<40s} MPJPE {acc[f'mpjpe_mm{sfx}']:6.1f}  PA-MPJPE {acc[f'pa_mpjpe_mm{sfx}']:6.1f}  "
                 f"W-MPJPE {acc[f'w_mpjpe_mm{sfx}']:6.1f}  root {acc[f'root_err_mm{sfx}']:6.1f} mm over "
                 f"{acc[f'frames_scored{sfx}']} frames (MPJPE by group: {groups})")
 
