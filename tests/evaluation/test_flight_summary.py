@@ -99,4 +99,9 @@ def test_reconstruction_accuracy_against_truth(tmp_path):
     assert acc["mpjpe_mm_window"] < 0.5 and abs(acc["per_group_mm_window"]["legs"]["w_mpjpe_mm"] - 100.0) < 0.5
     assert acc["keypoints_source"] == "sim_noisy_gt" and acc["position_grade"] == "rtk"
     assert reconstruction_accuracy(tmp_path)["keypoints_source"] == "unknown"  # no capture.npz beside the motion
+    from evaluation.flight import format_accuracy
+
+    text = format_accuracy(acc)
+    assert "2D source: sim_noisy_gt; position grade: rtk" in text and "steady orbit" in text
+    assert "W-MPJPE  100.0  root  100.0 mm over 5 frames" in text and "legs 0.0" in text
     assert reconstruction_accuracy(tmp_path / "nothing-here") == {}
