@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruction.metrics import pa_mpjpe_mm, per_joint_errors_mm, w_mpjpe_mm
+from reconstruction.metrics import BODY_GROUPS, accuracy_metrics, pa_mpjpe_mm, per_joint_errors_mm, w_mpjpe_mm
 from reconstruction.monocular.dictionary import PoseDictionary, load_dictionary
 from reconstruction.monocular.pipeline import MonocularConfig, reconstruct_monocular, to_world_metric
 from skycap.bvh import read_bvh
@@ -167,6 +167,9 @@ def evaluate_clip(motion: str | Path, cfg: EvalMonocularConfig, dictionary: Pose
         Xm = res.model.joints_ned
         out["pa_mpjpe_mm_model"], out["per_joint_mm_model"] = _score(np.swapaxes(Xm, 1, 2), view.gt_ned_m)
         out["w_mpjpe_mm_model"] = float(w_mpjpe_mm(Xm, view.gt_ned_m, joints=LIMB_JOINTS))
+        # the product output's figures named as everywhere (reconstruction.metrics), over the 12 limb joints
+        limb_groups = {g: js for g, js in BODY_GROUPS.items() if set(js) <= set(LIMB_JOINTS)}
+        out["model_accuracy"] = accuracy_metrics(Xm, view.gt_ned_m, LIMB_JOINTS, groups=limb_groups, ndigits=None)
         out["model_seconds"] = res.model_seconds
         out["model_start"] = res.model_start
     out["init_seconds"] = res.init_seconds
