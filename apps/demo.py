@@ -8,6 +8,16 @@
 
     skycap demo --autopilot px4 --drones 2             # the same on real PX4 SITL (SIH) from ../shared/px4-sitl
     skycap demo --sorties 2                            # take off, orbit, land twice without restarting anything
+    skycap demo --motion ../shared/data/mocap/cmu/005/005_10.bvh    # the person performs a recorded motion
+
+``--motion FILE.bvh`` (``motion.*``, :class:`simulator.scene.person.PersonMotionConfig`): the simulated person
+performs that recorded motion (any CMU-style BVH: rig, axes and unit detected, what was assumed logged) instead of
+the default walk with stops, placed at the orbit's centre on the ground from the simulation's start, looped
+(``motion.end = "loop"``, each seam cross-faded) or held at its last frame (``"clamp"``). The file is read before
+anything starts (a missing file, one without the needed joints or of an unknown unit is a clear error);
+``config.toml`` names it with its sha256 (``motion.file``, ``motion.sha256``) and ``summary.json`` under
+``motion`` (file, sha256, rig, frames, unit and height assumed, ground, loop/clamp and a note of how often it
+played over the flight).
 
 ``--autopilot px4``: the vehicles are real PX4 SITL instances with PX4's SIH simulator (``--px4-dir DIR``,
 default ``../shared/px4-sitl`` beside the checkout or ``$SKYCAP_PX4_SITL``; refused with a clear error when it
@@ -87,13 +97,14 @@ from comms.faults import MalformedDetectionsInjector, MalformedFloodInjector
 from comms.outsider import OutsiderProbe
 from comms.security import FleetKeys
 from comms.transport import Transport, TransportConfig
-from evaluation.flight import (format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
+from evaluation.flight import (format_accuracy, format_table, format_tracking_table, reconstruction_accuracy, summarize_flight,
                                summarize_tracking)
 from flightdata.folder import FlightFolder
 from flightdata.recorder import Recorder
 from groundstation.fleet import FleetClient, make_orbit_plan
 from onboard.orbit import evenly_spaced_phases
 from shared_msgs import SimTruth, keys
+from simulator.scene.person import PersonMotionConfig, load_bvh_motion
 from skycap.childproc import ProcessSupervisor
 from skycap.config import ConfigError, add_config_args, config_from_args, save_config
 from skycap.errors import SkycapError
@@ -236,6 +247,9 @@ class DemoConfig:
     mode: str = "orbit"
     track: TrackDemoConfig = field(default_factory=TrackDemoConfig)
     faults: FaultsDemoConfig = field(default_factory=FaultsDemoConfig)
+    #: the person performs this recorded motion (``--motion FILE.bvh``; placed at the orbit's centre in orbit mode);
+    #: ``motion.file`` "" = the simulator's default walk with stops
+    motion: PersonMotionConfig = field(default_factory=PersonMotionConfig)
     #: timeouts (s)
     ready_timeout_s: float = 60.0
     takeoff_timeout_s: float = 60.0
@@ -333,6 +347,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--px4-dir", default=None, help="the PX4 SITL build for --autopilot px4 (default ../shared/px4-sitl)")
     p.add_argument("--sorties", type=int, default=None,
                    help="take off, orbit and land this many times without restarting anything (default 1)")
+    p.add_argument("--motion", default=None, metavar="FILE.bvh",
+                   help="the person performs this recorded motion (any CMU-style BVH; motion.end=loop|clamp)")
     p.add_argument("--insecure", action="store_true", default=None,
                    help="DEBUGGING ONLY: plaintext Zenoh, no certificates, no access control")
     add_config_args(p)
@@ -345,7 +361,8 @@ def _run(args: argparse.Namespace) -> int:
                                                 "autopilot": getattr(args, "autopilot", None),
                                                 "px4_dir": getattr(args, "px4_dir", None),
                                                 "sorties": getattr(args, "sorties", None),
-                                                "insecure": getattr(args, "insecure", None)})
+                                                "insecure": getattr(args, "insecure", None),
+                                                "motion.file": getattr(args, "motion", None)})
     summary = run_demo(cfg.validate())
     return 0 if summary is not None and "sortie_error" not in summary else 1
 
@@ -383,6 +400,12 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     px4_folder = _px4_folder(cfg) if px4 else None  # before anything is made: a clear error when PX4 is absent
     if not cfg.out:
         cfg = dataclasses.replace(cfg, out=time.strftime("flights/demo-%Y%m%d-%H%M%S", time.gmtime()))
+    motion = None
+    if cfg.motion.file:  # read before anything starts: a file the person cannot play is a clear error now
+        if cfg.mode == "orbit":  # at the plan's centre
+            cfg = dataclasses.replace(cfg, motion=dataclasses.replace(cfg.motion, center_ne_m=list(cfg.orbit.center_ned_m[:2])))
+        motion = load_bvh_motion(cfg.motion)
+        cfg = dataclasses.replace(cfg, motion=dataclasses.replace(cfg.motion, file=str(motion.path), sha256=motion.sha256))
     flight = FlightFolder(cfg.out)
     out = flight.path
     if flight.has_recordings() or flight.summary_path.exists():
@@ -403,6 +426,12 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if cfg.orbit.spawn_under_slots:  # the built-in vehicles' spawn points, PX4's homes
         spawn = ", ".join(f"[{n}, {e}]" for n, e in _spawn_positions(cfg, phases))
         sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")
+    if motion is not None:  # the simulator plays the same file (and checks its sha256)
+        mc = cfg.motion
+        sim_set += [f"motion.file={json.dumps(mc.file)}", f"motion.sha256={json.dumps(mc.sha256)}",
+                    f"motion.end={json.dumps(mc.end)}", f"motion.loop_blend_s={mc.loop_blend_s}",
+                    f"motion.units_to_m={mc.units_to_m}", f"motion.center_ne_m={json.dumps(list(mc.center_ne_m))}",
+                    f"motion.skip_first_frame={json.dumps(mc.skip_first_frame)}"]
     fc = cfg.faults
     sim_set += cfg.sim_set
     save_config(cfg, flight.config_path)
@@ -682,7 +711,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         bus.close()
         if temp_keys:
             shutil.rmtree(fleet_keys.folder.parent, ignore_errors=True)  # the mkdtemp folder
-    log.info("flight done in %.0f s; files in %s", time.monotonic() - t_begin, out)
+    played_s = time.monotonic() - t_begin  # the simulator (and the person's motion) started about then
+    log.info("flight done in %.0f s; files in %s", played_s, out)
 
     recon: dict = {"ran": False}
     if cfg.reconstruct:
@@ -724,6 +754,8 @@ def run_demo(cfg: DemoConfig) -> dict | None:
                               for k, p in enumerate(plans[:orbits_flown[0]])]
         if sortie_error:
             summary["sortie_error"] = sortie_error
+    if motion is not None:
+        summary["motion"] = motion.info(played_s)
     summary["autopilot"] = _autopilot_report(cfg, px4_folder)
     summary["security"] = _security_report(fleet_keys, temp_keys)
     if track:
@@ -732,13 +764,19 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if recon.get("exit_code") == 0 and "error" not in summary:
         # simulated flight: score the reconstruction against the simulator's truth (all frames, steady orbit)
         npz = (recon.get("summary") or {}).get("outputs", {}).get("npz")  # where the method wrote its motion
-        recon["accuracy_vs_truth"] = reconstruction_accuracy(out, motion_npz=npz,
-                                                             window_s=summary["fleet"]["steady_orbit_window_s"])
+        recon["accuracy_vs_truth"] = reconstruction_accuracy(
+            out, motion_npz=npz, window_s=summary["fleet"]["steady_orbit_window_s"],
+            keypoints_source=recon.get("keypoints_source") or (recon.get("summary") or {}).get("keypoints_source"),
+            position_grade=summary["autopilot"].get("position_estimate"))
     summary["reconstruction"] = recon
     if cfg.faults != FaultsDemoConfig():
         summary["faults"] = fault_report
     flight.summary_path.write_text(json.dumps(summary, indent=2))
     print(f"autopilot: {summary['autopilot']['kind']}; transport: {summary['security']['transport']}", flush=True)
+    if motion is not None:
+        mi = summary["motion"]
+        print(f"motion: {mi['file']} (sha256 {mi['sha256'][:12]}..., rig {mi['rig']}, unit {mi['units']}, person about "
+              f"{mi['height_m']:.2f} m tall; {mi['note']})", flush=True)
     for entry in summary.get("sorties", []):
         print(f"sortie {entry['sortie']} (frames, rates, min_separation_m and flight_s: whole flight):\n"
               + format_table(entry), flush=True)
@@ -750,10 +788,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         print(format_tracking_table(summary["tracking"]), flush=True)
     acc = recon.get("accuracy_vs_truth") or {}
     if acc:
-        print(f"reconstruction vs truth: steady orbit MPJPE {acc.get('mpjpe_mm_window', float('nan')):.1f} mm, "
-              f"PA-MPJPE {acc.get('pa_mpjpe_mm_window', float('nan')):.1f} mm over {acc.get('frames_scored_window', 0)} "
-              f"frames; whole flight incl. take-off and landing MPJPE {acc['mpjpe_mm']:.1f} mm, "
-              f"PA-MPJPE {acc['pa_mpjpe_mm']:.1f} mm", flush=True)
+        print(format_accuracy(acc), flush=True)
     if sortie_error:
         print(f"sortie {sortie_error['sortie']} of {cfg.sorties} FAILED: {sortie_error['error']}", flush=True)
     print(f"summary: {flight.summary_path}", flush=True)

@@ -46,17 +46,17 @@ import numpy as np
 
 from flightdata.flightlog import FlightLog, SortieLogs
 from flightdata.folder import FlightFolder, Sortie, natural_key, read_sim_truth
-from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
+from reconstruction.metrics import accuracy_metrics
 from onboard.tracking.roi import box_in_roi
 from shared_msgs import CameraFrame, Command, Detections, Health, Keypoints2D, OrbitPlan, SimTruth, TargetEstimate, VehicleState
 from skycap.errors import SkycapError
-from skycap.skeleton import JOINT_GROUPS, SCORED_JOINTS
+from skycap.skeleton import SCORED_JOINTS
 
 log = logging.getLogger(__name__)
 
 __all__ = ["SummaryError", "orbit_errors", "min_pairwise_distance_m", "yaw_to_center_error_deg_rms", "summarize_flight", "format_table",
            "write_summary", "summarize_tracking", "format_tracking_table",
-           "lost_time_s"]
+           "lost_time_s", "reconstruction_accuracy", "format_accuracy"]
 
 
 class SummaryError(SkycapError):
@@ -246,14 +246,19 @@ def write_summary(flight_dir: str | Path, **kw) -> dict:
 
 
 def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | None = None,
-                            window_s: tuple[float, float] | None = None) -> dict:
+                            window_s: tuple[float, float] | None = None, keypoints_source: str | None = None,
+                            position_grade: str | None = None) -> dict:
     """Accuracy of a flight's reconstruction against the simulator's ground truth (simulated flights only).
 
     Reads the person's true COCO-17 joints from ``truth.mcap`` (SimTruth, NED metres), interpolates them
     linearly to the reconstruction's frame times (``reconstruction/motion.npz``: ``t_ns``, ``joints_ned``)
     and scores the joints of :data:`skycap.skeleton.SCORED_JOINTS` over all reconstructed frames and, with
-    ``window_s`` (UNIX seconds, e.g. the steady orbit), over that window (``*_window`` keys). Returns {} when
-    either file is absent.
+    ``window_s`` (UNIX seconds, e.g. the steady orbit), over that window (``*_window`` keys), with
+    :func:`reconstruction.metrics.accuracy_metrics`: ``mpjpe_mm`` (root-aligned, Human3.6M protocol 1),
+    ``pa_mpjpe_mm`` (protocol 2), ``w_mpjpe_mm`` (world, no alignment), ``root_err_mm``, ``per_group_mm``
+    (torso / arms / legs / head). Also says what was scored: ``keypoints_source`` (the 2D keypoints the
+    reconstruction used: as given, else the detectors named in its ``capture.npz``) and ``position_grade``
+    (the drones' position estimate, e.g. "rtk" / "gps", as given). Returns {} when either file is absent.
     """
 
     flight = FlightFolder(flight_dir)
@@ -283,24 +288,44 @@ def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | Non
     gt = np.stack([np.stack([np.interp(tq, tt, J[:, j, k]) for k in range(3)], -1) for j in range(17)], 1)
     pred = pred[inside]
     sj = list(SCORED_JOINTS)
-
-    def score(sel: np.ndarray, suffix: str) -> dict:
-        e = per_joint_errors_mm(pred[sel], gt[sel])
-        return {
-            f"frames_scored{suffix}": int(sel.sum()),
-            f"mpjpe_mm{suffix}": round(mpjpe_mm(pred[sel], gt[sel], sj), 1),
-            f"pa_mpjpe_mm{suffix}": round(pa_mpjpe_mm(pred[sel], gt[sel], sj), 1),
-            f"per_group_mm{suffix}": {g: round(float(e[:, list(idx)].mean()), 1) for g, idx in JOINT_GROUPS.items()},
-        }
-
-    out = {"joints_scored": "COCO-17 " + ", ".join(str(j) for j in sj), **score(np.ones(len(pred), bool), "")}
+    out = {"keypoints_source": keypoints_source or _capture_detectors(npz.parent / "capture.npz"),
+           "position_grade": position_grade or "unknown",
+           "joints_scored": "COCO-17 " + ", ".join(str(j) for j in sj),
+           **accuracy_metrics(pred, gt, sj)}
     if window_s is not None:
         t_s = t_rec[inside] * 1e-9
         sel = (t_s >= window_s[0]) & (t_s <= window_s[1])
         if sel.any():
-            out.update(score(sel, "_window"))
+            out.update(accuracy_metrics(pred[sel], gt[sel], sj, suffix="_window"))
             out["window_s"] = [float(window_s[0]), float(window_s[1])]
     return out
+
+
+def _capture_detectors(path: Path) -> str:
+    """The 2D keypoint detectors of a reconstruction's ``capture.npz`` (comma-separated), or "unknown"."""
+    try:
+        z = np.load(path, allow_pickle=False)
+        names = sorted({str(d) for k in z.files if k.endswith(".detectors") for d in z[k].tolist()})
+    except (OSError, ValueError, KeyError):
+        return "unknown"
+    return ", ".join(names) or "unknown"
+
+
+def format_accuracy(acc: dict) -> str:
+    """The accuracy lines the demo prints: steady orbit (window) and the whole flight, with what was scored."""
+    def row(label: str, sfx: str) -> str:
+        g = acc.get(f"per_group_mm{sfx}", {})
+        groups = ", ".join(f"{k} {v['mpjpe_mm']:.1f}" for k, v in g.items())
+        return (f"  {label:<40s} MPJPE {acc[f'mpjpe_mm{sfx}']:6.1f}  PA-MPJPE {acc[f'pa_mpjpe_mm{sfx}']:6.1f}  "
+                f"W-MPJPE {acc[f'w_mpjpe_mm{sfx}']:6.1f}  root {acc[f'root_err_mm{sfx}']:6.1f} mm over "
+                f"{acc[f'frames_scored{sfx}']} frames (MPJPE by group: {groups})")
+
+    lines = [f"reconstruction vs truth (2D source: {acc.get('keypoints_source', 'unknown')}; position grade: "
+             f"{acc.get('position_grade', 'unknown')}; MPJPE root-aligned, PA per frame, W-MPJPE world):"]
+    if "mpjpe_mm_window" in acc:
+        lines.append(row("steady orbit", "_window"))
+    lines.append(row("whole flight incl. take-off and landing", ""))
+    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -4,6 +4,11 @@ skycap sim --drones 3                                   # vehicles 1..3 -> udp 1
 skycap sim --drones 1 --set wind.mean_speed_m_s=5 --set battery.start_percent=20
 skycap sim --config sim.toml --duration 60
 skycap sim --drones 3 --fleet demo --zenoh-connect tcp/127.0.0.1:7447   # + ground truth on the fleet's sim/truth
+skycap sim --fleet demo --motion ../shared/data/mocap/cmu/005/005_10.bvh --set motion.end=clamp   # a recorded motion
+
+``--motion FILE.bvh`` (``motion.file``): the simulated person performs that recorded motion (any CMU-style BVH,
+placed at ``motion.center_ne_m`` on the ground, looped or clamped: :mod:`simulator.scene.person`) instead of the
+default walk with stops; the file is read (and a bad one refused) before anything starts.
 
 With ``--fleet``, the simulator joins the fleet's Zenoh network and publishes the ground truth (every vehicle's
 true pose and the simulated person's joints, ``SimTruth`` on ``sim/truth``, :mod:`simulator.truth`) and takes
@@ -57,6 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--duration", type=float, default=None, help="stop after this many seconds (default: run until Ctrl-C)"
     )
     p.add_argument("--out", type=Path, default=None, help="write the resolved config.toml into this folder")
+    p.add_argument("--motion", default=None, metavar="FILE.bvh",
+                   help="the person performs this recorded motion (a CMU-style BVH; motion.* settings)")
     p.add_argument(
         "--status-every", type=float, default=10.0, help="log each vehicle's state every N seconds (0: never)"
     )
@@ -93,7 +100,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from simulator.config import SimConfig  # imported here: `skycap --help` imports every command module
 
-    extra = {"vehicles.count": args.drones}
+    extra = {"vehicles.count": args.drones, "motion.file": str(Path(args.motion).resolve()) if args.motion else None}
     if args.gimbal_pitch_deg is not None:
         extra["gimbal.initial_pitch_deg"] = args.gimbal_pitch_deg
     cfg = config_from_args(SimConfig, args, extra=extra).validate()
@@ -104,6 +111,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.autopilot == "px4" and args.gps_jump:
         raise SkycapError("--gps-jump acts on the built-in simulator's estimator; PX4's cannot be offset from "
                           "outside: leave it out with --autopilot px4 (or use --autopilot builtin)")
+    if cfg.motion.file:  # read it now: a file the person cannot play is an error before anything starts
+        from simulator.scene.person import load_bvh_motion
+
+        load_bvh_motion(cfg.motion)
     net = None
     if args.fleet:
         net = SimNetwork(fleet=args.fleet, zenoh_connect=args.zenoh_connect, zenoh_keys=args.zenoh_keys or "",
@@ -151,7 +162,8 @@ def run_sim(cfg: SimConfig, out: Path | None = None, duration_s: float | None = 
                                  lambda name: world.vehicles[0].params.get(name) is not None, net.link_loss)
         bus = Transport.open(TransportConfig.local_peer(net.zenoh_connect, net.zenoh_keys), "sim")
         bus.declare_alive(keys.alive_key(net.fleet, keys.SIM))
-        TruthPublisher(world, bus, net.fleet, rate_hz=net.truth_hz, gimbal_pitch_rad=net.gimbal_pitch_rad)
+        TruthPublisher(world, bus, net.fleet, rate_hz=net.truth_hz, gimbal_pitch_rad=net.gimbal_pitch_rad,
+                       motion=cfg.motion)
         schedule_faults(world, bus, net.fleet, faults)
 
     async def main() -> None:
@@ -245,7 +257,8 @@ def run_px4(cfg: SimConfig, px4_dir: str | None = None, first_instance: int = 0,
             bus.declare_alive(keys.alive_key(net.fleet, keys.SIM))
             publisher = SihTruthPublisher(bus, net.fleet, [sitl.truth_port(k) for k in range(n)],
                                           (o.lat_deg, o.lon_deg, o.alt_m), rate_hz=net.truth_hz,
-                                          gimbal_pitch_rad=net.gimbal_pitch_rad, ground_alt_amsl_m=ground)
+                                          gimbal_pitch_rad=net.gimbal_pitch_rad, ground_alt_amsl_m=ground,
+                                          motion=cfg.motion)
             cancel = schedule_px4_params(sitl, bus, net.fleet, faults)
         t_status = time.monotonic() + status_every_s if status_every_s > 0 else math.inf
         while not stop.is_set():

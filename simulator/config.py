@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from simulator.scene.person import PersonMotionConfig
 from skycap.config import ConfigError
 
 
@@ -234,6 +235,9 @@ class SimConfig:
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
     #: one camera gimbal per vehicle (MAVLink gimbal protocol v2; ``gimbal.enabled=false``: none)
     gimbal: GimbalConfig = field(default_factory=GimbalConfig)
+    #: the person performs this recorded motion (``--motion FILE.bvh``; simulator.scene.person): "" = the default
+    #: walk with stops
+    motion: PersonMotionConfig = field(default_factory=PersonMotionConfig)
     #: physics / controller step rate
     physics_hz: float = 100.0
     #: default takeoff altitude (PX4 MIS_TAKEOFF_ALT), metres above home
@@ -249,6 +253,7 @@ class SimConfig:
 
     def validate(self) -> "SimConfig":
         """Raise :class:`ConfigError` on values the simulator cannot run with; returns self."""
+        self.motion.validate()
         if self.vehicles.count < 1 or self.vehicles.count > 250:
             raise ConfigError(f"vehicles.count={self.vehicles.count} must be in 1..250 (MAVLink system ids)")
         if self.vehicles.spawn_ne_m and len(self.vehicles.spawn_ne_m) < self.vehicles.count:

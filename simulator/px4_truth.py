@@ -77,7 +77,7 @@ class SihTruthPublisher:
 
     def __init__(self, bus: Transport, fleet: str, ports: list[int], origin: tuple[float, float, float],
                  rate_hz: float = 50.0, gimbal_pitch_rad: float = 0.0, ground_alt_amsl_m: float | None = None,
-                 with_person: bool = True, drone_ids: list[str] | None = None) -> None:
+                 with_person: bool = True, drone_ids: list[str] | None = None, motion=None) -> None:
         if rate_hz <= 0:
             raise ValueError(f"rate_hz={rate_hz}: give a positive publishing rate")
         self.bus, self.rate_hz, self.gimbal_pitch_rad = bus, float(rate_hz), float(gimbal_pitch_rad)
@@ -88,7 +88,7 @@ class SihTruthPublisher:
             raise ValueError(f"{len(self.drone_ids)} drone ids for {len(ports)} truth ports")
         #: per vehicle, the ground's altitude AMSL (None until the first sample when not given)
         self.ground_alt_amsl_m: list[float | None] = [ground_alt_amsl_m] * len(ports)
-        self.person = PersonTruth(with_person)
+        self.person = PersonTruth(with_person, motion)
         self.published = 0
         self._t0_s = time.monotonic()
         self.reader = SihTruthReader(ports, self.origin, on_truth=self._on_sample)

@@ -26,12 +26,18 @@ __all__ = ["PersonTruth", "TruthPublisher", "SimFaults", "schedule_faults"]
 
 class PersonTruth:
     """The simulated person's part of a ``SimTruth`` (:class:`simulator.scene.person.PersonSim` with the default
-    person), or a still person of zeros when the scene is unavailable (it needs the motion clips). Shared by the
-    built-in simulator's :class:`TruthPublisher` and PX4 SITL's :class:`simulator.px4_truth.SihTruthPublisher`."""
+    person, or the recorded motion of ``motion.file``: :class:`simulator.scene.person.BvhPerson`), or a still person
+    of zeros when the scene is unavailable (it needs the motion clips). Shared by the built-in simulator's
+    :class:`TruthPublisher` and PX4 SITL's :class:`simulator.px4_truth.SihTruthPublisher`. A ``motion`` file that
+    cannot be played is an error (:class:`simulator.scene.person.PersonError`), not a silent default walk."""
 
-    def __init__(self, enabled: bool = True) -> None:
+    def __init__(self, enabled: bool = True, motion=None) -> None:
         self.person = None
-        if enabled:
+        if enabled and motion is not None and motion.file:
+            from simulator.scene.person import make_person
+
+            self.person = make_person(None, motion)
+        elif enabled:
             try:  # the scene is optional for the flight (it needs the motion clips)
                 from simulator.scene.config import PersonConfig
                 from simulator.scene.person import PersonSim
@@ -55,10 +61,10 @@ class TruthPublisher:
     (``gimbal.enabled = false``) reports ``gimbal_pitch_rad`` (a fixed camera pitch) and yaw 0."""
 
     def __init__(self, world: SimWorld, bus: Transport, fleet: str, rate_hz: float = 50.0,
-                 gimbal_pitch_rad: float = 0.0, with_person: bool = True) -> None:
+                 gimbal_pitch_rad: float = 0.0, with_person: bool = True, motion=None) -> None:
         self.world, self.bus, self.gimbal_pitch_rad = world, bus, gimbal_pitch_rad
         self.key = keys.sim_key(fleet, keys.TRUTH)
-        self.person = PersonTruth(with_person)
+        self.person = PersonTruth(with_person, motion)
         world.add_tick_hook(self.publish, rate_hz=rate_hz)
 
     def publish(self, t_ns: int, truths) -> None:

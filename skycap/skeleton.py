@@ -99,3 +99,74 @@ def limb_lengths(joints: np.ndarray, limbs=COCO17_LIMBS) -> np.ndarray:
     a = np.array([l[0] for l in limbs])
     b = np.array([l[1] for l in limbs])
     return np.linalg.norm(joints[..., a, :] - joints[..., b, :], axis=-1)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# any CMU-style BVH rig -> COCO-17 (the simulated person's --motion FILE.bvh)
+
+#: Known BVH rigs: COCO-17 index -> joint name for the 12 limb joints, plus the head and neck joints (and the eyes
+#: where the rig has them). "cc_base": the CMU data retargeted onto the CC_Base rig (``../shared/data/mocap/cmu``);
+#: "cmu": the classic CMU BVH conversions (cgspeed / Bandai-Namco style names: ``LeftUpLeg``, ``LeftLeg``,
+#: ``LeftFoot``, ``LeftArm``, ``LeftForeArm``, ``LeftHand``, ``Neck``/``Neck1``, ``Head``). A rig's joint names
+#: may carry a namespace prefix (``mixamorig:LeftArm``): it is ignored.
+BVH_RIGS: dict[str, dict] = {
+    "cc_base": {"limbs": {k: v for k, v in CC_BASE_TO_COCO17.items() if k >= 5},
+                "head": "CC_Base_Head", "neck": ("CC_Base_NeckTwist01",), "eyes": ("CC_Base_L_Eye", "CC_Base_R_Eye")},
+    "cmu": {"limbs": {5: "LeftArm", 6: "RightArm", 7: "LeftForeArm", 8: "RightForeArm", 9: "LeftHand", 10: "RightHand",
+                      11: "LeftUpLeg", 12: "RightUpLeg", 13: "LeftLeg", 14: "RightLeg", 15: "LeftFoot", 16: "RightFoot"},
+            "head": "Head", "neck": ("Neck1", "Neck"), "eyes": None},
+}  # fmt: skip
+
+
+def _strip_ns(name: str) -> str:
+    return name.rsplit(":", 1)[-1]
+
+
+def detect_bvh_rig(names: list[str]) -> tuple[str | None, dict[str, list[str]]]:
+    """(the first rig of :data:`BVH_RIGS` whose joints ``names`` all has, or None; per rig the joints it lacks)."""
+    have = {_strip_ns(n) for n in names}
+    missing = {}
+    for rig, spec in BVH_RIGS.items():
+        need = list(spec["limbs"].values()) + [spec["head"]] + list(spec["eyes"] or ())
+        lack = [n for n in need if n not in have]
+        if not any(n in have for n in spec["neck"]):
+            lack.append(" or ".join(spec["neck"]))
+        missing[rig] = lack
+        if not lack:
+            return rig, missing
+    return None, missing
+
+
+def bvh_rig_to_coco17(world_positions: np.ndarray, names: list[str], rig: str, cm_units: float) -> np.ndarray:
+    """COCO-17 joints (T, 17, 3) in the file's own axes and units from FK world positions (T, J, 3) of a ``rig`` of
+    :data:`BVH_RIGS`. ``cm_units``: file units per centimetre (for the face offsets). Face points as in
+    :func:`mocap_to_coco17` from the eyes; a rig without eyes gets them 6 cm above and 8 cm ahead of its head joint
+    (ahead = perpendicular to the shoulders and the neck-to-head direction)."""
+    spec = BVH_RIGS[rig]
+    idx = {_strip_ns(n): i for i, n in enumerate(names)}
+    pg = world_positions
+    out = np.zeros((pg.shape[0], 17, 3))
+    for k, name in spec["limbs"].items():
+        out[:, k] = pg[:, idx[name]]
+    head = pg[:, idx[spec["head"]]]
+    neck = pg[:, idx[next(n for n in spec["neck"] if n in idx)]]
+    if spec["eyes"]:
+        eye_l, eye_r = pg[:, idx[spec["eyes"][0]]], pg[:, idx[spec["eyes"][1]]]
+        out[:, 1], out[:, 2] = eye_l, eye_r
+        left = _unit(eye_l - eye_r)
+    else:
+        left = _unit(out[:, 5] - out[:, 6])
+    up = head - neck
+    up = _unit(up - left * np.sum(up * left, -1, keepdims=True))
+    fwd = np.cross(left, up)  # right-handed axes: left x up = forward
+    if spec["eyes"]:
+        eye_mid = 0.5 * (eye_l + eye_r)
+        fwd *= np.sign(np.sum((eye_mid - head) * fwd, -1, keepdims=True) + 1e-12)
+    else:
+        eye_mid = head + cm_units * (6.0 * up + 8.0 * fwd)
+        out[:, 1] = eye_mid + cm_units * 3.2 * left
+        out[:, 2] = eye_mid - cm_units * 3.2 * left
+    out[:, 0] = eye_mid + cm_units * (2.0 * fwd - 4.0 * up)
+    out[:, 3] = eye_mid + cm_units * (7.5 * left - 8.0 * fwd - 1.0 * up)
+    out[:, 4] = eye_mid + cm_units * (-7.5 * left - 8.0 * fwd - 1.0 * up)
+    return out

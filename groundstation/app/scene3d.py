@@ -332,9 +332,11 @@ class SkeletonPlayer(QWidget):
                 acc = (json.loads(Path(flight_summary).read_text()).get("reconstruction") or {}).get("accuracy_vs_truth") or {}
             except ValueError:
                 acc = {}
-        if acc.get("mpjpe_mm") is not None:
-            lines.append(f"vs simulator truth: MPJPE {acc['mpjpe_mm']:.1f} mm, PA-MPJPE {acc.get('pa_mpjpe_mm', float('nan')):.1f} mm"
-                         f" over {acc.get('frames_scored', '?')} frames")
+        if acc.get("w_mpjpe_mm") is not None:
+            lines.append(_accuracy_line(acc))
+        elif acc.get("mpjpe_mm") is not None:  # a summary written before the metrics were named: its MPJPE was world
+            lines.append(f"vs simulator truth (older summary): W-MPJPE {acc['mpjpe_mm']:.1f} mm, PA-MPJPE "
+                         f"{acc.get('pa_mpjpe_mm', float('nan')):.1f} mm over {acc.get('frames_scored', '?')} frames")
         else:
             lines.append("accuracy vs truth: not in the flight's summary.json (only simulated flights scored by "
                          "skycap demo have it)")
@@ -569,3 +571,14 @@ class Live3DView(Scene3DView):
         hfov = 2 * math.atan2(info.width_px / 2, info.fx_px) if info else math.radians(70)
         vfov = 2 * math.atan2(info.height_px / 2, info.fy_px) if info else math.radians(50)
         return view3d.frustum_segments(pos, yaw, dep, hfov, vfov, 2.0)
+
+
+def _accuracy_line(acc: dict) -> str:
+    """The flight summary's ``accuracy_vs_truth`` in one line: the steady orbit's figures when scored (else the
+    whole flight's), MPJPE root-aligned, PA-MPJPE per frame, W-MPJPE world, with the 2D source and position grade."""
+    sfx = "_window" if acc.get("mpjpe_mm_window") is not None else ""
+    nan = float("nan")
+    return (f"vs simulator truth ({'steady orbit' if sfx else 'whole flight'}): MPJPE {acc.get('mpjpe_mm' + sfx, nan):.1f} mm, "
+            f"PA-MPJPE {acc.get('pa_mpjpe_mm' + sfx, nan):.1f} mm, W-MPJPE {acc.get('w_mpjpe_mm' + sfx, nan):.1f} mm, "
+            f"root {acc.get('root_err_mm' + sfx, nan):.1f} mm over {acc.get('frames_scored' + sfx, '?')} frames; "
+            f"2D {acc.get('keypoints_source', 'unknown')}, positions {acc.get('position_grade', 'unknown')}")

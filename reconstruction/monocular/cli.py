@@ -96,13 +96,13 @@ def _run_eval(args) -> int:
     result["dictionary_clips"] = list(d.clips)
     write_json(out / "metrics.json", result)
     print(f"{'clip':<12}{'frames':>7}{'init':>8}{'BA':>8}{'BA-paper':>10}{'BA-noart':>10}{'BA-ext':>8}{'BA-persp':>10}{'world':>8}"
-          f"{'model':>8}{'world':>8}  (PA-MPJPE mm, 12 joints; BA-paper = the paper's update order; world = MPJPE of the "
+          f"{'model':>8}{'world':>8}  (PA-MPJPE mm, 12 joints; BA-paper = the paper's update order; world = W-MPJPE (no alignment) of the "
           "column before; model = the body model fitted after BA-persp)")  # fmt: skip
     for r in rows + ([dict(result, motion="MEAN")] if len(rows) > 1 else []):
         print(f"{Path(r['motion']).stem:<12}{r['frames']:>7}{r['pa_mpjpe_mm_init']:>8.1f}{r['pa_mpjpe_mm_ba']:>8.1f}"
               f"{r.get('pa_mpjpe_mm_ba_paper_order', float('nan')):>10.1f}{r.get('pa_mpjpe_mm_ba_no_articulation', float('nan')):>10.1f}{r.get('pa_mpjpe_mm_ba_extended', float('nan')):>8.1f}"
-              f"{r.get('pa_mpjpe_mm_ba_perspective', float('nan')):>10.1f}{r.get('mpjpe_mm_ba_perspective', float('nan')):>8.1f}"
-              f"{r.get('pa_mpjpe_mm_model', float('nan')):>8.1f}{r.get('mpjpe_mm_model', float('nan')):>8.1f}")  # fmt: skip
+              f"{r.get('pa_mpjpe_mm_ba_perspective', float('nan')):>10.1f}{r.get('w_mpjpe_mm_ba_perspective', float('nan')):>8.1f}"
+              f"{r.get('pa_mpjpe_mm_model', float('nan')):>8.1f}{r.get('w_mpjpe_mm_model', float('nan')):>8.1f}")  # fmt: skip
     print(f"wrote {out / 'metrics.json'}")
     return 0
 

@@ -53,7 +53,8 @@ def _eval(args: argparse.Namespace) -> int:
     }  # fmt: skip
     cfg = config_from_args(EvalConfig, args, extra)
     m = run_eval(cfg)
-    keys = ("method", "frames", "mpjpe_mm", "pa_mpjpe_mm", "camera_pos_err_m_before", "camera_pos_err_m_after",
+    keys = ("method", "frames", "mpjpe_mm", "pa_mpjpe_mm", "w_mpjpe_mm", "root_err_mm", "keypoints_source",
+            "position_grade", "camera_pos_err_m_before", "camera_pos_err_m_after",
             "camera_rot_err_deg_before", "camera_rot_err_deg_after", "fit_seconds")  # fmt: skip
     print(json.dumps({k: m[k] for k in keys}, indent=2))
     return 0

@@ -10,8 +10,11 @@ Output times: every ``round(bvh_fps / camera_rate_hz)``-th mocap frame from ``st
 frames), ``frames`` of them; the GT there is exact (no interpolation); the cameras are not synchronised
 to them.
 
-Metrics (``metrics.json``): ``mpjpe_mm`` (no alignment), ``pa_mpjpe_mm`` (per-frame similarity
-Procrustes), ``root_aligned_mpjpe_mm`` (mid-hip subtracted), ``per_joint`` {group: {position_mm,
+Metrics (``metrics.json``, named as in :mod:`reconstruction.metrics`): ``mpjpe_mm`` (root-aligned: mid-hip
+subtracted, Human3.6M protocol 1), ``pa_mpjpe_mm`` (per-frame similarity Procrustes, protocol 2), ``w_mpjpe_mm``
+(world, no alignment), ``root_err_mm``, ``per_group_mm`` {torso / arms / legs / head: {mpjpe_mm, pa_mpjpe_mm,
+w_mpjpe_mm}}, ``keypoints_source`` and ``position_grade`` (what the 2D keypoints and the drone poses were),
+``per_joint`` {group: {position_mm (world),
 angle_deg}} as AirCap Table 1 (angle = angle between estimated and true direction of the bone leaving
 the joint: shoulder->elbow, elbow->wrist, hip->knee, knee->ankle; for wrist and ankle the bone into
 it; head: mid-shoulder->nose), camera position/rotation error of the drone estimates (``_before``) and
@@ -29,7 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from reconstruction.capture import interpolate_poses
-from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, per_joint_errors_mm
+from reconstruction.metrics import accuracy_metrics, per_joint_errors_mm
 from reconstruction.multiview.fit import FitConfig, FitResult, fit_capture
 from reconstruction.synth import SynthConfig, SynthTruth, synthesize_capture
 from skycap.bvh import read_bvh
@@ -107,15 +110,15 @@ def compute_metrics(res: FitResult, gt: np.ndarray) -> dict:
         g: {"position_mm": float(e[:, list(idx)].mean()), "angle_deg": float(np.mean([ang[j].mean() for j in idx]))}
         for g, idx in JOINT_GROUPS.items()
     }
-    root_p = 0.5 * (pred[:, 11] + pred[:, 12])
-    root_g = 0.5 * (gt[:, 11] + gt[:, 12])
-    return {
-        "mpjpe_mm": mpjpe_mm(pred, gt, SCORED_JOINTS),
-        "pa_mpjpe_mm": pa_mpjpe_mm(pred, gt, SCORED_JOINTS),
-        "root_aligned_mpjpe_mm": mpjpe_mm(pred - root_p[:, None], gt - root_g[:, None], SCORED_JOINTS),
-        "root_err_mm": float(1000 * np.linalg.norm(root_p - root_g, axis=-1).mean()),
-        "per_joint": per_joint,
-    }
+    return {**accuracy_metrics(pred, gt, SCORED_JOINTS, ndigits=None), "per_joint": per_joint}
+
+
+def sources(synth: SynthConfig) -> dict:
+    """What the harness scored: ``keypoints_source`` (the 2D keypoints) and ``position_grade`` (the drone poses)."""
+    drift = f", drift fraction {synth.camera_noise_drift_fraction:g}" if synth.camera_noise_drift_fraction else ""
+    return {"keypoints_source": f"simulated: true projections + {synth.noise_px:g} px noise, "
+                                f"{100 * synth.outlier_rate:g} % outliers ({synth.detectors} detector(s))",
+            "position_grade": f"white noise {synth.camera_pos_noise_m:g} m / {synth.camera_rot_noise_deg:g} deg{drift}"}
 
 
 def run_eval(cfg: EvalConfig, progress: bool = True) -> dict:
@@ -133,6 +136,7 @@ def run_eval(cfg: EvalConfig, progress: bool = True) -> dict:
     res = fit_capture(cap, t_grid, cfg.fit, progress=progress)
     metrics = {"motion": str(cfg.motion), "method": cfg.fit.method, "frames": int(len(idx)), "cameras": cap.num_cameras,
                "fit_seconds": res.fit_seconds, "fit_frames_per_s": len(idx) / res.fit_seconds}  # fmt: skip
+    metrics.update(sources(cfg.synth))
     metrics.update(compute_metrics(res, gt))
     metrics.update(camera_errors(res, cap, truth))
     if cfg.out:

@@ -19,6 +19,24 @@ How it moves (a deterministic function of the simulation time ``t_s``):
 
 Local frame of a pose: NED axes rotated by the heading (x forward, y right, z down), origin on the
 ground under the anchor; world = Rz(heading) @ local + (anchor_n, anchor_e, 0).
+
+**A recorded motion instead** (``skycap sim --motion FILE.bvh``, ``skycap demo --motion FILE.bvh``;
+:class:`PersonMotionConfig`, :func:`load_bvh_motion`, :class:`BvhPerson`): any CMU-style BVH (a rig of
+:data:`skycap.skeleton.BVH_RIGS`) played as recorded, root trajectory included, from the simulation's start:
+
+* **Joints**: the rig's joints mapped to COCO-17 (:func:`skycap.skeleton.bvh_rig_to_coco17`); a file without the
+  12 limb joints, the head and the neck of a known rig is refused, naming what it lacks.
+* **Axes and units**: the up axis is the one along which the head stands above the ankles (Y-up, the BVH norm, or
+  Z-up); the unit is detected from the person's size: of metres, centimetres, millimetres, inches, CMU's ASF units
+  (inches / 0.45) and feet, the one that puts the head joint 1.1-1.9 m above the ankles (90th percentile over the
+  clip; closest to 1.5 m if several do); ``units_to_m`` overrides it. What was assumed (unit, height) is logged
+  and in :meth:`BvhMotion.info`.
+* **Placement**: the middle of the root's horizontal track at ``center_ne_m``; on the ground: the recorded floor
+  when the feet stand on it (lowest ankle, 5th percentile over the clip, 3-25 cm above it), else the feet moved
+  onto the ground (that ankle height 10 cm). The first frame is left out when it is the CC_Base conversions'
+  prepended T-pose (or any T-pose).
+* **Past the end**: ``end="loop"`` plays it again, each seam cross-faded over ``loop_blend_s`` (the person
+  slides back to the start pose), or ``end="clamp"`` holds the last frame.
 """
 
 from __future__ import annotations
@@ -26,20 +44,24 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import functools
+import hashlib
 import logging
 import math
+from dataclasses import field
 from pathlib import Path
 
 import numpy as np
 
 from simulator.scene.config import PersonConfig
+from skycap.config import ConfigError
 from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
 BUILTIN_MOTIONS_DIR = Path(__file__).resolve().parents[1] / "data" / "motions"
 
-__all__ = ["MotionClip", "PersonState", "PersonSim", "load_clip", "PersonError", "BUILTIN_MOTIONS_DIR"]
+__all__ = ["MotionClip", "PersonState", "PersonSim", "load_clip", "PersonError", "BUILTIN_MOTIONS_DIR",
+           "PersonMotionConfig", "BvhMotion", "BvhPerson", "load_bvh_motion", "make_person"]
 
 
 class PersonError(SkycapError):
@@ -348,3 +370,261 @@ class PersonSim:
         joints[:, 1] += anchor[1]
         root = 0.5 * (joints[11] + joints[12])
         return PersonState(float(t_s), joints, root, float(heading), motion, seg.kind == "walk")
+
+
+
+# ------------------------------------------------------------------------------------------------------------
+# a recorded motion from a BVH file (--motion FILE.bvh)
+
+#: Units a BVH may be written in: (name, metres per unit). CMU's ASF/AMC unit is 1/0.45 inch.
+BVH_UNITS: tuple[tuple[str, float], ...] = (
+    ("metres", 1.0), ("centimetres", 0.01), ("millimetres", 0.001), ("inches", 0.0254),
+    ("CMU ASF units (inches / 0.45)", 0.0254 / 0.45), ("feet", 0.3048),
+)  # fmt: skip
+#: Plausible height (m) of the head joint above the ankles of a standing adult (90th percentile over a clip).
+HEAD_ABOVE_ANKLES_M = (1.1, 1.9)
+
+
+@dataclasses.dataclass
+class PersonMotionConfig:
+    """The simulated person performs a recorded motion instead of the default waypoint walk (see the module doc)."""
+
+    #: a BVH file of a CMU-style rig (skycap.skeleton.BVH_RIGS); "" = the default walk with stops
+    file: str = ""
+    #: the file's expected sha256 (hex); "" = not checked. ``skycap demo`` fills it in, so that its saved
+    #: config.toml names exactly the motion flown and refuses a changed file
+    sha256: str = ""
+    #: past the clip's end: "loop" (again from the start, the seam cross-faded) or "clamp" (hold the last frame)
+    end: str = "loop"
+    #: cross-fade of a loop's seam, seconds
+    loop_blend_s: float = 1.0
+    #: metres per file unit; 0 = detected from the person's size (and logged)
+    units_to_m: float = 0.0
+    #: the middle of the root's horizontal track is placed here (world NED [north_m, east_m])
+    center_ne_m: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    #: leave the first frame out: "auto" (when it is a T-pose, or the CC_Base conversions' prepended one), "yes", "no"
+    skip_first_frame: str = "auto"
+
+    def validate(self) -> "PersonMotionConfig":
+        if self.end not in ("loop", "clamp"):
+            raise ConfigError(f"motion.end={self.end!r}; use 'loop' or 'clamp'")
+        if self.loop_blend_s < 0 or self.units_to_m < 0:
+            raise ConfigError("motion.loop_blend_s and motion.units_to_m must be >= 0 (units_to_m 0 = detect)")
+        if len(self.center_ne_m) != 2:
+            raise ConfigError(f"motion.center_ne_m={self.center_ne_m}: give [north_m, east_m]")
+        if self.skip_first_frame not in ("auto", "yes", "no"):
+            raise ConfigError(f"motion.skip_first_frame={self.skip_first_frame!r}; use 'auto', 'yes' or 'no'")
+        return self
+
+
+@dataclasses.dataclass(frozen=True)
+class BvhMotion:
+    """A BVH motion as the person plays it: ``joints_ned_m`` (T, 17, 3) COCO-17, world NED, placed (see
+    :func:`load_bvh_motion`), at ``fps``; what was read and assumed in the other fields."""
+
+    path: Path
+    sha256: str
+    rig: str
+    joints_ned_m: np.ndarray
+    fps: float
+    end: str
+    loop_blend_s: float
+    units: str
+    units_to_m: float
+    units_detected: bool
+    up_axis: str
+    height_m: float
+    head_above_ankles_m: float
+    ground: str
+    skipped_first_frame: bool
+    center_ne_m: tuple[float, float]
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.joints_ned_m.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        return (self.num_frames - 1) / self.fps
+
+    @property
+    def blend_s(self) -> float:
+        """The loop seam's cross-fade actually used (at most a third of the clip)."""
+        return min(self.loop_blend_s, self.duration_s / 3.0)
+
+    @property
+    def period_s(self) -> float:
+        """Loop: seconds between two starts (the clip less its cross-faded seam); clamp: the clip's length."""
+        return self.duration_s - self.blend_s if self.end == "loop" else self.duration_s
+
+    def _at(self, u_s: float) -> np.ndarray:
+        f = min(max(u_s * self.fps, 0.0), self.num_frames - 1.0)
+        i0 = min(int(math.floor(f)), self.num_frames - 2)
+        w = f - i0
+        return (1.0 - w) * self.joints_ned_m[i0] + w * self.joints_ned_m[i0 + 1]
+
+    def sample(self, t_s: float) -> np.ndarray:
+        """Joints (17, 3) world NED at ``t_s`` seconds after the start (looped or clamped past the end)."""
+        t_s = max(float(t_s), 0.0)
+        if self.end == "clamp" or self.period_s <= 0:
+            return self._at(t_s)
+        k = math.floor(t_s / self.period_s)
+        u = t_s - k * self.period_s
+        pose = self._at(u)
+        b = self.blend_s
+        if k >= 1 and b > 0 and u < b:  # the seam: the clip's last b seconds fade into its first ones
+            pose = _blend_poses(self._at(self.period_s + u), pose, _smoothstep(u / b))
+        return pose
+
+    def note(self, played_s: float | None = None) -> str:
+        """What the person does over ``played_s`` seconds of simulation (the flight)."""
+        d = f"the motion lasts {self.duration_s:.1f} s"
+        if self.end == "loop":
+            s = f"{d} and loops (each seam cross-faded over {self.blend_s:.2f} s: the person slides back to the start)"
+            if played_s:
+                s += f"; {played_s:.0f} s of simulation played it {played_s / self.period_s:.1f} times"
+            return s
+        s = f"{d}, then holds its last frame"
+        if played_s and played_s > self.duration_s:
+            s += f" (still for the last {played_s - self.duration_s:.0f} s of {played_s:.0f} s of simulation)"
+        return s
+
+    def info(self, played_s: float | None = None) -> dict:
+        """The motion for ``config.toml`` / ``summary.json``: file, sha256 and everything assumed."""
+        return {
+            "file": str(self.path), "sha256": self.sha256, "rig": self.rig, "frames": self.num_frames,
+            "fps": round(self.fps, 3), "duration_s": round(self.duration_s, 3),
+            "skipped_first_frame": self.skipped_first_frame, "up_axis": self.up_axis, "units": self.units,
+            "units_to_m": self.units_to_m, "units_detected": self.units_detected,
+            "height_m": round(self.height_m, 2), "head_above_ankles_m": round(self.head_above_ankles_m, 3),
+            "ground": self.ground, "center_ne_m": list(self.center_ne_m), "end": self.end, "note": self.note(played_s),
+        }  # fmt: skip
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+#: file axes -> NED for the up axes a BVH may use (both right-handed, proper rotations)
+_UP_TO_NED = {
+    "y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),  # (x, y, z) -> (x, z, -y)
+    "z": np.diag([1.0, -1.0, -1.0]),  # (x, y, z) -> (x, -y, -z)
+}
+
+
+def _is_t_pose(j: np.ndarray) -> bool:
+    """Arms out sideways at shoulder height (j (17, 3) NED metres)."""
+    level = all(abs(j[w, 2] - j[s, 2]) < 0.12 for w, s in ((9, 5), (10, 6)))
+    return level and np.linalg.norm(j[9] - j[10]) > 1.25 * np.linalg.norm(j[5] - j[6]) + 0.6
+
+
+def load_bvh_motion(cfg: PersonMotionConfig) -> BvhMotion:
+    """Read ``cfg.file`` and make it the person's motion (see the module doc). Raises :class:`PersonError` naming
+    the problem and the fix (no file, not a BVH, no known rig, unit or axes not recognised)."""
+    from skycap.bvh import BvhError, read_bvh
+    from skycap.skeleton import BVH_RIGS, bvh_rig_to_coco17, detect_bvh_rig
+
+    cfg = cfg.validate()
+    path = Path(cfg.file).expanduser().resolve()
+    if not path.is_file():
+        raise PersonError(f"motion file {cfg.file} does not exist; give a BVH file (e.g. one of "
+                          "../shared/data/mocap/cmu/*/*.bvh) to --motion")
+    sha = _file_sha256(path)
+    if cfg.sha256 and cfg.sha256.lower() != sha:
+        raise PersonError(f"motion file {path} has sha256 {sha}, not the {cfg.sha256} the configuration names: it "
+                          "changed since; use the original file or clear motion.sha256")
+    try:
+        motion = read_bvh(path)
+    except BvhError as e:
+        raise PersonError(f"motion file {path} cannot be read as BVH: {e}") from None
+    names = motion.skeleton.names
+    rig, missing = detect_bvh_rig(names)
+    if rig is None:
+        lack = "; ".join(f"{r}: lacks {', '.join(m[:6])}{' ...' if len(m) > 6 else ''}" for r, m in missing.items())
+        raise PersonError(f"motion file {path} has none of the rigs the person can play ({lack}); it needs the "
+                          "shoulders, elbows, wrists, hips, knees, ankles, head and neck of a CMU-style skeleton "
+                          "(skycap.skeleton.BVH_RIGS names them); retarget it onto one")
+    if motion.num_frames < 2:
+        raise PersonError(f"motion file {path} holds {motion.num_frames} frame(s); the person needs at least 2")
+    world = motion.world_positions()  # (T, J, 3) file units and axes
+    # up axis: along which the head stands above the ankles
+    spec = BVH_RIGS[rig]
+    idx = {n.rsplit(":", 1)[-1]: i for i, n in enumerate(names)}
+    head_u = world[:, idx[spec["head"]]]
+    ankles_u = 0.5 * (world[:, idx[spec["limbs"][15]]] + world[:, idx[spec["limbs"][16]]])
+    v = np.mean(head_u - ankles_u, axis=0)
+    ax = int(np.argmax(np.abs(v)))
+    if ax == 0 or v[ax] <= 0:
+        raise PersonError(f"motion file {path}: the head stands above the ankles along {'-' if v[ax] < 0 else '+'}"
+                          f"{'xyz'[ax]}, not +y (the BVH norm) or +z; re-export it Y-up or Z-up")
+    up = "xyz"[ax]
+    h_u = float(np.percentile((head_u - ankles_u)[:, ax], 90))
+    if cfg.units_to_m > 0:
+        units, scale, detected = f"{cfg.units_to_m:g} m per unit (given)", cfg.units_to_m, False
+        if not HEAD_ABOVE_ANKLES_M[0] <= h_u * scale <= HEAD_ABOVE_ANKLES_M[1]:
+            log.warning("motion %s: with units_to_m=%g the head is %.2f m above the ankles (a standing adult: "
+                        "%.1f-%.1f m); check motion.units_to_m", path.name, scale, h_u * scale, *HEAD_ABOVE_ANKLES_M)
+    else:
+        fits = [(abs(math.log(h_u * s / 1.5)), n, s) for n, s in BVH_UNITS
+                if HEAD_ABOVE_ANKLES_M[0] <= h_u * s <= HEAD_ABOVE_ANKLES_M[1]]
+        if not fits:
+            raise PersonError(
+                f"motion file {path}: cannot tell its unit: the head joint is {h_u:.4g} file units above the "
+                f"ankles, which in none of {', '.join(n for n, _ in BVH_UNITS)} makes a person whose head is "
+                f"{HEAD_ABOVE_ANKLES_M[0]}-{HEAD_ABOVE_ANKLES_M[1]} m above the ankles; give the metres per file "
+                "unit with --set motion.units_to_m=...")
+        _, units, scale = min(fits)
+        detected = True
+    j = bvh_rig_to_coco17(world, names, rig, cm_units=0.01 / scale) * scale @ _UP_TO_NED[up].T
+    skip = cfg.skip_first_frame == "yes" or (cfg.skip_first_frame == "auto" and (rig == "cc_base" or _is_t_pose(j[0])))
+    if skip:
+        j = j[1:]
+    if len(j) < 2:
+        raise PersonError(f"motion file {path} holds one frame after its T-pose; the person needs at least 2")
+    # on the ground
+    low = np.percentile(np.min(-j[:, 15:17, 2], axis=1), 5)
+    if 0.03 <= low <= 0.25:
+        ground = f"as recorded (the file's floor; lowest ankle {low:.2f} m above it)"
+    else:
+        j[..., 2] += low - 0.10
+        ground = f"feet moved onto the ground (lowest ankle was {low:.2f} m above the file's zero, now 0.10 m)"
+    # in the middle of the plan
+    root = 0.5 * (j[:, 11, :2] + j[:, 12, :2])
+    mid = 0.5 * (root.min(axis=0) + root.max(axis=0))
+    j[..., :2] += np.asarray(cfg.center_ne_m, dtype=float) - mid
+    nose_above = float(np.percentile(-j[:, 0, 2] + np.mean(j[:, 15:17, 2], axis=1), 90))
+    height = nose_above + 0.2  # + nose to crown (~12 cm) + ankle to sole (~8 cm)
+    m = BvhMotion(path=path, sha256=sha, rig=rig, joints_ned_m=j, fps=float(motion.fps),
+                  end=cfg.end, loop_blend_s=cfg.loop_blend_s, units=units, units_to_m=float(scale),
+                  units_detected=detected, up_axis=up, height_m=height, head_above_ankles_m=h_u * scale, ground=ground,
+                  skipped_first_frame=bool(skip), center_ne_m=(float(cfg.center_ne_m[0]), float(cfg.center_ne_m[1])))
+    log.info("motion %s: rig %s, %d frames at %.1f fps (%.1f s), %s-up, unit %s (%s; person about %.2f m tall), "
+             "ground %s, %s", path.name, rig, m.num_frames, m.fps, m.duration_s, up, units,
+             "detected from the size" if detected else "given", height, ground, m.note())
+    return m
+
+
+class BvhPerson:
+    """The person performing a :class:`BvhMotion` (the same ``state_at`` as :class:`PersonSim`)."""
+
+    def __init__(self, motion: BvhMotion):
+        self.motion = motion
+        self.name = f"bvh:{motion.path.stem}"
+
+    def state_at(self, t_s: float) -> PersonState:
+        j = self.motion.sample(t_s)
+        left = j[11] - j[12]
+        fwd = np.cross(left, np.array([0.0, 0.0, -1.0]))  # left x up = forward (NED)
+        root = 0.5 * (j[11] + j[12])
+        return PersonState(float(t_s), j, root, float(math.atan2(fwd[1], fwd[0])), self.name, False)
+
+
+def make_person(person_cfg: PersonConfig | None = None, motion: PersonMotionConfig | None = None):
+    """The simulated person: :class:`BvhPerson` when ``motion.file`` is set, else :class:`PersonSim`."""
+    if motion is not None and motion.file:
+        return BvhPerson(load_bvh_motion(motion))
+    return PersonSim(person_cfg)

@@ -65,7 +65,8 @@ def test_yaw_to_center_error():
 
 
 def test_reconstruction_accuracy_against_truth(tmp_path):
-    """A reconstruction offset by 10 cm from the truth scores MPJPE 100 mm and PA-MPJPE 0; the window selects."""
+    """A reconstruction offset by 10 cm from the truth scores W-MPJPE and root error 100 mm, (root-aligned) MPJPE
+    and PA-MPJPE 0; the window selects; the summary says what was scored."""
     import numpy as np
 
     from evaluation.flight import reconstruction_accuracy
@@ -89,8 +90,18 @@ def test_reconstruction_accuracy_against_truth(tmp_path):
     pred = base[None] + np.stack([walked, 0 * walked, 0 * walked], -1)[:, None] + np.array([0.0, 0.1, 0.0])
     (tmp_path / "reconstruction").mkdir()
     np.savez(tmp_path / "reconstruction" / "motion.npz", t_ns=t_rec, joints_ned=pred)
-    acc = reconstruction_accuracy(tmp_path, window_s=((t0 * 1e-9) + 1.0, (t0 * 1e-9) + 1.5))
+    acc = reconstruction_accuracy(tmp_path, window_s=((t0 * 1e-9) + 1.0, (t0 * 1e-9) + 1.5),
+                                  keypoints_source="sim_noisy_gt", position_grade="rtk")
     assert acc["frames_scored"] == 19
-    assert abs(acc["mpjpe_mm"] - 100.0) < 0.5 and acc["pa_mpjpe_mm"] < 0.5
-    assert acc["frames_scored_window"] == 5 and abs(acc["mpjpe_mm_window"] - 100.0) < 0.5
+    assert abs(acc["w_mpjpe_mm"] - 100.0) < 0.5 and abs(acc["root_err_mm"] - 100.0) < 0.5
+    assert acc["mpjpe_mm"] < 0.5 and acc["pa_mpjpe_mm"] < 0.5
+    assert acc["frames_scored_window"] == 5 and abs(acc["w_mpjpe_mm_window"] - 100.0) < 0.5
+    assert acc["mpjpe_mm_window"] < 0.5 and abs(acc["per_group_mm_window"]["legs"]["w_mpjpe_mm"] - 100.0) < 0.5
+    assert acc["keypoints_source"] == "sim_noisy_gt" and acc["position_grade"] == "rtk"
+    assert reconstruction_accuracy(tmp_path)["keypoints_source"] == "unknown"  # no capture.npz beside the motion
+    from evaluation.flight import format_accuracy
+
+    text = format_accuracy(acc)
+    assert "2D source: sim_noisy_gt; position grade: rtk" in text and "steady orbit" in text
+    assert "W-MPJPE  100.0  root  100.0 mm over 5 frames" in text and "legs 0.0" in text
     assert reconstruction_accuracy(tmp_path / "nothing-here") == {}

@@ -80,12 +80,15 @@ def test_player_loads_plays_at_the_files_rate_pauses_and_seeks(player, qtbot, tm
     flight = tmp_path / "f1"
     _write_motion(flight / "reconstruction" / "multiview", frames=40)
     (flight / "summary.json").write_text(json.dumps({"reconstruction": {"accuracy_vs_truth": {
-        "mpjpe_mm": 41.5, "pa_mpjpe_mm": 30.25, "frames_scored": 40}}}))
+        "mpjpe_mm": 99.0, "pa_mpjpe_mm": 99.0, "w_mpjpe_mm": 99.0, "root_err_mm": 99.0, "frames_scored": 40,
+        "mpjpe_mm_window": 41.5, "pa_mpjpe_mm_window": 30.25, "w_mpjpe_mm_window": 55.5, "root_err_mm_window": 20.0,
+        "frames_scored_window": 30, "keypoints_source": "sim_noisy_gt", "position_grade": "rtk"}}}))
     assert player.load(flight / "reconstruction" / "multiview", flight / "summary.json")
     assert player.frames == 40 and abs(player.frame_period_s() - 1 / RATE_HZ) < 1e-9
     text = player.metrics.text()
     assert "multiview" in text and "frames 40" in text and "cameras 2" in text and "fit 3.2 s" in text
-    assert "MPJPE 41.5 mm" in text and "PA-MPJPE 30.2 mm" in text
+    assert "steady orbit" in text and "MPJPE 41.5 mm" in text and "PA-MPJPE 30.2 mm" in text
+    assert "W-MPJPE 55.5 mm" in text and "over 30 frames" in text and "sim_noisy_gt" in text and "rtk" in text
     assert player.time_label.text().startswith("0.00 / 1.95 s")
     t0 = time.monotonic()
     qtbot.mouseClick(player.play_btn, Qt.LeftButton)

@@ -23,10 +23,13 @@ def test_eval_monocular_cli_on_held_out_clip(cmu_dir, tmp_path):
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
     for k in ("pa_mpjpe_mm_init", "pa_mpjpe_mm_ba", "pa_mpjpe_mm_ba_no_articulation", "per_joint_mm", "frames",
-              "init_seconds", "ba_seconds", "pa_mpjpe_mm_ba_extended", "pa_mpjpe_mm_ba_perspective", "mpjpe_mm_ba_perspective",
-              "perspective_seconds", "pa_mpjpe_mm_model", "mpjpe_mm_model", "model_seconds"):  # fmt: skip
+              "init_seconds", "ba_seconds", "pa_mpjpe_mm_ba_extended", "pa_mpjpe_mm_ba_perspective", "w_mpjpe_mm_ba_perspective",
+              "perspective_seconds", "pa_mpjpe_mm_model", "w_mpjpe_mm_model", "model_seconds"):  # fmt: skip
         assert k in m, k
     assert m["frames"] == 121
+    acc = m["model_accuracy"]  # the product output named as everywhere: root-aligned, PA, world, root
+    assert set(acc["per_group_mm"]) == {"torso", "arms", "legs"} and acc["frames_scored"] == 121
+    assert abs(acc["pa_mpjpe_mm"] - m["pa_mpjpe_mm_model"]) < 1e-6 and abs(acc["w_mpjpe_mm"] - m["w_mpjpe_mm_model"]) < 1e-6
     assert set(m["per_joint_mm"]) == {"shoulder", "elbow", "wrist", "hip", "knee", "ankle"}
     assert np.isfinite(m["pa_mpjpe_mm_ba"])
     # the bundle adjustment must clearly improve on the single-frame initialisation

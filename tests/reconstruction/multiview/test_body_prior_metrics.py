@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from reconstruction.body import skeleton17 as sk
 from reconstruction.body.model import SkeletonBodyModel
-from reconstruction.metrics import mpjpe_mm, pa_mpjpe_mm, similarity_procrustes
+from reconstruction.metrics import pa_mpjpe_mm, similarity_procrustes, w_mpjpe_mm
 from reconstruction.prior import PosePrior, load_default_prior
 from reconstruction.synth import procedural_walker
 
@@ -89,14 +89,14 @@ def test_metrics_hand_computed():
     pred = gt.copy()
     pred[0, :, 2] += 0.003  # every joint 3 mm off along z
     pred[0, 0, 0] += 0.004  # joint 0: (4, 0, 3) mm -> 5 mm
-    assert mpjpe_mm(pred, gt) == pytest.approx((5 + 3 + 3) / 3)
-    assert mpjpe_mm(pred, gt, joints=[1, 2]) == pytest.approx(3.0)
+    assert w_mpjpe_mm(pred, gt) == pytest.approx((5 + 3 + 3) / 3)
+    assert w_mpjpe_mm(pred, gt, joints=[1, 2]) == pytest.approx(3.0)
     # a similarity transform (scale 2, 90 deg about z, shift) is removed exactly by PA
     R = np.array([[0, -1.0, 0], [1.0, 0, 0], [0, 0, 1.0]])
     X = np.random.default_rng(0).normal(size=(4, 6, 3))
     Y = 2.0 * X @ R.T + np.array([1.0, -2.0, 0.5])
     assert pa_mpjpe_mm(Y, X) == pytest.approx(0.0, abs=1e-9)
-    assert mpjpe_mm(Y, X) > 100
+    assert w_mpjpe_mm(Y, X) > 100
     s, R_est, t = similarity_procrustes(X[0], Y[0])
     assert s == pytest.approx(2.0) and np.allclose(R_est, R) and np.allclose(t, [1.0, -2.0, 0.5])
     # hand case: points (-1,0,0),(1,0,0) vs (-2,1,0),(2,1,0): scale 2, shift (0,1,0), PA error 0

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from reconstruction.capture import Capture, CameraCapture
-from reconstruction.metrics import mpjpe_mm
+from reconstruction.metrics import w_mpjpe_mm
 from reconstruction.multiview.fit import FitConfig, fit_capture
 from reconstruction.synth import SynthConfig, procedural_walker, synthesize_capture
 from skycap.frames import R_world_body_from_euler, T_world_cam_from_pose, intrinsics_matrix, make_T, project_points
@@ -48,7 +48,7 @@ def walker_capture():
 def test_product_fit_recovers_pose_and_camera_offset(walker_capture):
     J, t_ns, shape, cap, truth = walker_capture
     res = fit_capture(cap, t_ns, FitConfig(iters=250), progress=False)
-    assert mpjpe_mm(res.joints_ned, J, SCORED_JOINTS) < 25.0
+    assert w_mpjpe_mm(res.joints_ned, J, SCORED_JOINTS) < 25.0
     np.testing.assert_allclose(res.shape[[1, 2, 6, 7]], shape[[1, 2, 6, 7]], atol=0.02)  # limb lengths
     sel = res.cam_index == 1
     from reconstruction.capture import interpolate_poses
@@ -128,7 +128,7 @@ def test_flight_reader_and_reconstruct_cli(tmp_path):
     from reconstruction.synth import interpolate_joints
 
     gt = interpolate_joints(t_ns, J, z["t_ns"])
-    assert mpjpe_mm(z["joints_ned"], gt, SCORED_JOINTS) < 40.0
+    assert w_mpjpe_mm(z["joints_ned"], gt, SCORED_JOINTS) < 40.0
 
 
 def test_eval_multiview_cli(tmp_path, cmu_dir):
@@ -139,9 +139,11 @@ def test_eval_multiview_cli(tmp_path, cmu_dir):
                "--set", "fit.iters=120"])  # fmt: skip
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
-    for k in ("mpjpe_mm", "pa_mpjpe_mm", "per_joint", "camera_pos_err_m_before", "camera_pos_err_m_after",
+    for k in ("mpjpe_mm", "pa_mpjpe_mm", "w_mpjpe_mm", "root_err_mm", "per_group_mm", "keypoints_source",
+              "position_grade", "per_joint", "camera_pos_err_m_before", "camera_pos_err_m_after",
               "camera_rot_err_deg_before", "camera_rot_err_deg_after", "frames", "fit_seconds"):  # fmt: skip
         assert k in m
     assert m["frames"] == 24 and set(m["per_joint"]) == {"shoulder", "elbow", "wrist", "hip", "knee", "ankle", "head"}
+    assert "root_aligned_mpjpe_mm" not in m and set(m["per_group_mm"]) == {"torso", "arms", "legs", "head"}
     assert m["pa_mpjpe_mm"] < 80 and m["camera_pos_err_m_after"] < m["camera_pos_err_m_before"]
     assert (out / "config.toml").is_file() and (out / "reconstruction.bvh").is_file()
