@@ -3,7 +3,7 @@ the ``foxglove-sdk`` package), so that Foxglove's Image, 3D and plot panels show
 
     from flightdata.foxglove import export_foxglove
 
-    out = export_foxglove("flights/demo", result, "flights/demo/foxglove.mcap")   # result: t_ns, joints_ned
+    out = export_foxglove("flights/demo", result)   # result: t_ns, joints_ned -> flights/demo/flight.foxglove.mcap
     out.counts                       # {"/drone_1/camera/image": 186, ...}: messages written per topic
 
 or ``skycap log foxglove FLIGHT_DIR`` (the skeleton from the flight's reconstruction ``motion.npz`` when there
@@ -203,7 +203,7 @@ def export_foxglove(
 ) -> FoxgloveExport:
     """Write the flight (every sortie, or ``sortie``) and the reconstruction ``result`` (any object with ``t_ns`` (T,)
     and ``joints_ned`` (T, 17, 3), e.g. a :class:`reconstruction.result.ReconstructionResult`; None: no skeleton) as a
-    Foxglove MCAP at ``out_path`` (default: the flight's ``foxglove.mcap``). See the module docstring for the topics.
+    Foxglove MCAP at ``out_path`` (default: :attr:`FlightFolder.foxglove_path`, ``<flight>/flight.foxglove.mcap``). See the module docstring for the topics.
 
     An existing ``out_path`` is refused unless ``overwrite``. A drone whose recording cannot be read is skipped with
     a warning (``FoxgloveExport.skipped``); :class:`FoxgloveExportError` when none can be. ``track_path_points``
@@ -217,7 +217,7 @@ def export_foxglove(
         raise FoxgloveExportError("the Foxglove export needs the foxglove-sdk package: pip install -e '.[recon]' "
                                   "(or pip install foxglove-sdk)") from None
     flight = flight_dir if isinstance(flight_dir, FlightFolder) else FlightFolder(flight_dir)
-    out = Path(out_path) if out_path is not None else flight.path / "foxglove.mcap"
+    out = Path(out_path) if out_path is not None else flight.foxglove_path
     if out.exists() and not overwrite:
         raise FoxgloveExportError(f"{out} already exists; choose another output file or pass overwrite=True (--force)")
     logs_by_drone = flight.drone_logs(sortie=sortie)
@@ -378,9 +378,9 @@ def register(cmds: Any) -> None:
                         "images with box and keypoint annotations, calibration and camera/drone transforms; the "
                         "person track; the reconstructed skeleton (from --motion, default the flight's "
                         "reconstruction/motion.npz, else reconstruction_monocular/motion.npz, when present). "
-                        "Example: skycap log foxglove flights/demo  (writes flights/demo/foxglove.mcap)")
+                        "Example: skycap log foxglove flights/demo  (writes flights/demo/flight.foxglove.mcap)")
     p.add_argument("flight", type=Path)
-    p.add_argument("--out", type=Path, default=None, help="output file (default FLIGHT/foxglove.mcap)")
+    p.add_argument("--out", type=Path, default=None, help="output file (default FLIGHT/flight.foxglove.mcap)")
     p.add_argument("--sortie", type=int, default=None, help="only this sortie (default: the whole flight)")
     p.add_argument("--motion", type=Path, default=None, help="a motion.npz (t_ns, joints_ned) to draw as the skeleton")
     p.add_argument("--force", action="store_true", help="replace an existing output file")

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 pytest.importorskip("foxglove", reason="foxglove-sdk (recon extra) writes the export")
 pytest.importorskip("foxglove_schemas_protobuf", reason="foxglove-schemas-protobuf (test extra) decodes it")
 
+from flightdata.folder import FlightFolder  # noqa: E402
 from flightdata.foxglove import R_ENU_NED, FoxgloveExportError, export_foxglove  # noqa: E402
 from flightdata.recorder import Recorder  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
@@ -232,6 +233,8 @@ def test_cli_writes_the_flight_with_its_reconstruction(flight, tmp_path):
     folder, _, J, t_ns = flight
     motion = tmp_path / "motion.npz"
     np.savez(motion, t_ns=t_ns, joints_ned=J)
-    out = tmp_path / "cli.mcap"
-    assert main(["log", "foxglove", str(folder), "--out", str(out), "--motion", str(motion)]) == 0
+    ids = FlightFolder(folder).drone_ids()
+    assert main(["log", "foxglove", str(folder), "--motion", str(motion)]) == 0
+    out = FlightFolder(folder).foxglove_path  # the default: in the flight folder, never read as a recording
     assert len(_decode_all(out)["/reconstruction/skeleton"]) == FRAMES
+    assert FlightFolder(folder).drone_ids() == ids == ["drone_1", "drone_2", "drone_3"]
