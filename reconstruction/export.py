@@ -40,6 +40,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from reconstruction.body import skeleton17 as sk
 from skycap.bvh import Skeleton, write_bvh
@@ -95,6 +96,13 @@ def write_joints_bvh(
 
     Returns (path, max_error_m): the largest distance between the BVH's COCO joints and the input.
     """
+    shape, R_root, R_loc, transl, err = _fit_skeleton(joints_ned, shape)
+    p = _write_skeleton_bvh(path, shape, R_root, R_loc, transl, frame_time_s, units_per_m)
+    return p, err
+
+
+def _fit_skeleton(joints_ned: np.ndarray, shape: np.ndarray | None):
+    """(shape, R_root, R_loc, transl, max_error_m): the rigid skeleton's inverse kinematics of the joints."""
     joints_ned = np.asarray(joints_ned, dtype=float)
     if joints_ned.ndim != 3 or joints_ned.shape[1:] != (17, 3):
         raise ValueError(f"joints_ned must be (T, 17, 3), got {joints_ned.shape}")
@@ -104,15 +112,18 @@ def write_joints_bvh(
     err = float(np.max(np.linalg.norm(back - joints_ned, axis=-1)))
     if err > 1e-3:
         log.warning("BVH export: joints are not a rigid skeleton; largest joint deviation %.1f mm", err * 1e3)
+    return shape, np.asarray(R_root), np.asarray(R_loc), np.asarray(transl), err
+
+
+def _write_skeleton_bvh(path, shape, R_root, R_loc, transl, frame_time_s: float, units_per_m: float) -> Path:
     skel, idx = bvh_skeleton(shape, units_per_m)
-    T = joints_ned.shape[0]
+    T = len(transl)
     R_all = np.broadcast_to(np.eye(3), (T, skel.num_joints, 3, 3)).copy()
     R_all[:, idx[0]] = R_YUP_NED @ R_root
     for slot, j in enumerate(sk.POSE_JOINTS):
         R_all[:, idx[j]] = R_loc[:, slot]
     root = ned_to_yup(transl) * units_per_m
-    p = write_bvh(path, skel, frame_time_s, root, R_all, rotation_order="ZYX", precision=5)
-    return p, err
+    return write_bvh(path, skel, frame_time_s, root, R_all, rotation_order="ZYX", precision=5)
 
 
 def resample_joints(joints_ned: np.ndarray, t_ns: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -141,10 +152,30 @@ def write_blender_bvh(
     path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray, shape: np.ndarray | None = None
 ) -> tuple[Path, float]:
     """The BVH for Blender: metres, resampled to :data:`BLENDER_FPS` (module docstring: Blender's default import
-    then gives the real size and the real speed). Returns (path, max_error_m) as :func:`write_joints_bvh`; BVH
-    frame ``i`` (Blender frame ``1 + i``) is the motion at ``t_ns[0] + i / BLENDER_FPS`` seconds."""
-    _, J = resample_joints(joints_ned, t_ns, BLENDER_FPS)
-    return write_joints_bvh(path, J, 1.0 / BLENDER_FPS, shape, units_per_m=1.0)
+    then gives the real size and the real speed). BVH frame ``i`` (Blender frame ``1 + i``) is the motion at
+    ``t_ns[0] + i / BLENDER_FPS`` seconds.
+
+    Resampled on the skeleton, not on the joints: the rigid skeleton is fitted at the recorded frames, then its joint
+    rotations are slerped and the root translation interpolated linearly, so that every BVH frame is the same rigid
+    skeleton (interpolating joint positions between frames 0.3 s apart would shorten the limbs by up to decimetres)
+    and the BVH equals the fit at the recorded times. Returns (path, max_error_m) as :func:`write_joints_bvh`: the
+    fit's largest joint distance from the input at the recorded frames.
+    """
+    shape, R_root, R_loc, transl, err = _fit_skeleton(joints_ned, shape)
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if len(t_ns) != len(transl):
+        raise ValueError(f"t_ns has {len(t_ns)} times for {len(transl)} frames of joints")
+    if len(t_ns) > 1:
+        if np.any(np.diff(t_ns) <= 0):
+            raise ValueError("t_ns must increase strictly to resample the motion")
+        t_s = (t_ns - t_ns[0]) * 1e-9
+        t_new = np.arange(int(np.floor(t_s[-1] * BLENDER_FPS + 1e-9)) + 1) / BLENDER_FPS
+        t_new = np.minimum(t_new, t_s[-1])
+        R_root = Slerp(t_s, Rotation.from_matrix(R_root))(t_new).as_matrix()
+        R_loc = np.stack([Slerp(t_s, Rotation.from_matrix(R_loc[:, j]))(t_new).as_matrix()
+                          for j in range(R_loc.shape[1])], axis=1)
+        transl = np.stack([np.interp(t_new, t_s, transl[:, a]) for a in range(3)], axis=-1)
+    return _write_skeleton_bvh(path, shape, R_root, R_loc, transl, 1.0 / BLENDER_FPS, 1.0), err
 
 
 def write_joints_trc(path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray, rate_hz: float | None = None) -> Path:
