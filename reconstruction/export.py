@@ -161,16 +161,27 @@ def write_blender_bvh(
     and the BVH equals the fit at the recorded times. Returns (path, max_error_m) as :func:`write_joints_bvh`: the
     fit's largest joint distance from the input at the recorded frames.
     """
-    shape, R_root, R_loc, transl, err = _fit_skeleton(joints_ned, shape)
+    joints_ned = np.asarray(joints_ned, dtype=float)
     t_ns = np.asarray(t_ns, dtype=np.int64)
-    if len(t_ns) != len(transl):
-        raise ValueError(f"t_ns has {len(t_ns)} times for {len(transl)} frames of joints")
+    if len(t_ns) != len(joints_ned):
+        raise ValueError(f"t_ns has {len(t_ns)} times for {len(joints_ned)} frames of joints")
+    # frames without every joint, or not later than the frame before, are left out (the motion is interpolated
+    # across them) so that one bad frame does not cost the file
+    keep = np.all(np.isfinite(joints_ned), axis=(1, 2)) if joints_ned.ndim == 3 else np.ones(len(t_ns), bool)
+    t_max = np.maximum.accumulate(np.where(keep, t_ns, np.iinfo(np.int64).min))
+    keep[1:] &= t_ns[1:] > t_max[:-1]
+    if not keep.any():
+        raise ValueError("no frame with every joint finite: nothing to write as a BVH")
+    if not keep.all():
+        log.warning("BVH export: left out %d of %d frames (a joint not finite, or a time not after the one before)",
+                    int((~keep).sum()), len(keep))
+    t_first = int(t_ns[0])
+    joints_ned, t_ns = joints_ned[keep], t_ns[keep]
+    shape, R_root, R_loc, transl, err = _fit_skeleton(joints_ned, shape)
     if len(t_ns) > 1:
-        if np.any(np.diff(t_ns) <= 0):
-            raise ValueError("t_ns must increase strictly to resample the motion")
-        t_s = (t_ns - t_ns[0]) * 1e-9
+        t_s = (t_ns - t_first) * 1e-9
         t_new = np.arange(int(np.floor(t_s[-1] * BLENDER_FPS + 1e-9)) + 1) / BLENDER_FPS
-        t_new = np.minimum(t_new, t_s[-1])
+        t_new = np.clip(t_new, t_s[0], t_s[-1])  # held before the first kept frame
         R_root = Slerp(t_s, Rotation.from_matrix(R_root))(t_new).as_matrix()
         R_loc = np.stack([Slerp(t_s, Rotation.from_matrix(R_loc[:, j]))(t_new).as_matrix()
                           for j in range(R_loc.shape[1])], axis=1)

@@ -130,3 +130,23 @@ def test_resample_joints_is_linear_and_uniform():
     np.testing.assert_allclose(J2[1], 0.5 * (J[0] + J[1]), atol=1e-12)
     with pytest.raises(ValueError, match="increase"):
         resample_joints(J, t_ns[::-1], 20.0)
+
+
+def test_blender_bvh_skips_bad_frames(tmp_path):
+    from reconstruction.export import write_blender_bvh
+    from skycap.bvh import read_bvh
+
+    J, t_ns, shape, *_ = procedural_walker(21, fps=10.0)
+    J[5] = np.nan  # a frame without a fit
+    t_ns = t_ns.copy()
+    t_ns[9] = t_ns[8]  # a repeated time
+    path, err = write_blender_bvh(tmp_path / "m.bvh", J, t_ns, shape)
+    m = read_bvh(path)
+    assert err < 1e-6 and m.num_frames == 49 and m.frame_time_s == pytest.approx(1 / 24, abs=1e-6)
+    assert np.isfinite(m.values).all()
+    P = m.world_positions()[:, [m.skeleton.index(n) for n in BVH_JOINT_FOR_COCO]]
+    from skycap.frames import yup_to_ned
+
+    # t = 0.5 s (BVH frame 12) had no fit: bridged between the recorded frames 4 and 6
+    assert np.abs(yup_to_ned(P[12]) - 0.5 * (J[4] + J[6])).max() < 0.03
+    np.testing.assert_allclose(yup_to_ned(P[24]), J[10], atol=1e-4)  # t = 1.0 s: a kept recorded frame
