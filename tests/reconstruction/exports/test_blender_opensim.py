@@ -43,6 +43,18 @@ def motion(tmp_path_factory):
     return paths, csv[:, 0], csv[:, 1:].reshape(-1, 17, 3)  # t_s, joints NED from the CSV
 
 
+def _opensim():
+    """The ``opensim`` module, imported without leaving its environment behind: importing it prepends its folder to
+    PATH and LD_LIBRARY_PATH (and sets SIMBODY_HOME), so that every later subprocess of this test session would load
+    OpenSim's bundled libcasadi instead of the casadi package's own (the formation MPC's import then fails)."""
+    env = dict(os.environ)
+    try:
+        return pytest.importorskip("opensim")
+    finally:
+        os.environ.clear()
+        os.environ.update(env)
+
+
 def _csv_at(t_csv_s, J_csv, t_s: float) -> np.ndarray:
     """The CSV's joints (17, 3) at time ``t_s``, linearly interpolated."""
     return np.array([[np.interp(t_s, t_csv_s, J_csv[:, j, a]) for a in range(3)] for j in range(17)])
@@ -92,7 +104,7 @@ def test_blender_imports_real_size_and_speed_with_defaults(motion):
 
 
 def test_trc_reads_back_in_opensim(motion, tmp_path):
-    osim = pytest.importorskip("opensim")
+    osim = _opensim()
     paths, t_csv, J_csv = motion
     table = osim.TimeSeriesTableVec3(str(paths["trc"]))
     meta = {k: table.getTableMetaDataAsString(k) for k in table.getTableMetaDataKeys()}
@@ -107,7 +119,7 @@ def test_trc_reads_back_in_opensim(motion, tmp_path):
 
 
 def test_trc_resamples_irregular_times_and_marks_gaps(tmp_path):
-    osim = pytest.importorskip("opensim")
+    osim = _opensim()
     J, t_ns, *_ = procedural_walker(31, fps=30.0)
     keep = np.r_[0:10, 11:31]  # one dropped frame: 30 Hz times with a gap
     Jg = J[keep].copy()
