@@ -321,8 +321,9 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> dict[s
 
 
 # ------------------------------------------------------------------------------------------------ CLI
-def register(sub: Any) -> None:
-    """Add ``skycap log info FILE...`` and ``skycap log recover IN OUT`` to the skycap CLI."""
+def register(sub: Any) -> Any:
+    """Add ``skycap log info FILE...`` and ``skycap log recover IN OUT`` to the skycap CLI; returns the ``log``
+    actions' subparsers (:mod:`flightdata.cli` adds ``skycap log foxglove`` to them)."""
     p = sub.add_parser(
         "log",
         help="inspect or recover flight recorder files (MCAP)",
@@ -338,6 +339,7 @@ def register(sub: Any) -> None:
     pr.add_argument("dst", type=Path)
     pr.add_argument("--force", action="store_true", help="replace an existing DST (never SRC)")
     pr.set_defaults(func=_cmd_recover)
+    return cmds
 
 
 def describe(path: str | Path) -> dict[str, Any]:

@@ -27,6 +27,8 @@ Layout (version :data:`LAYOUT_VERSION`; every name below is spelled here and now
       refined_track.npz / .json       the offline smoother's outputs (``skycap refine``)
       processing/                     ``skycap process``'s step cache (boxes, keypoints in chunks, fit windows),
                                       each entry keyed by a hash of its inputs and settings; safe to delete
+      flight.foxglove.mcap            the flight in Foxglove's schemas (``skycap log foxglove``; two dots: never
+                                      read as a recording)
 
 Layout 1 (before sorties) named a drone's only recording ``<drone_id>.mcap``; it reads as sortie 1.
 
@@ -71,6 +73,7 @@ RECONSTRUCTION_REFINED_DIR = "reconstruction_refined"
 REFINED_NPZ = "refined_track.npz"
 REFINED_JSON = "refined_track.json"
 PROCESSING_DIR = "processing"
+FOXGLOVE_FILE = "flight.foxglove.mcap"
 
 _SORTIE_RE = re.compile(r"^(?P<node>[^.]+)\.s(?P<n>\d{3,})\.mcap$")
 _LEGACY_RE = re.compile(r"^(?P<node>[^.]+)\.mcap$")
@@ -157,6 +160,11 @@ class FlightFolder:
     @property
     def refined_json_path(self) -> Path:
         return self.path / REFINED_JSON
+
+    @property
+    def foxglove_path(self) -> Path:
+        """The flight as a Foxglove MCAP (:func:`flightdata.foxglove.export_foxglove`)."""
+        return self.path / FOXGLOVE_FILE
 
     @property
     def refined_reconstruction_dir(self) -> Path:

@@ -1,18 +1,33 @@
 """Writers for reconstructed motion, shared by every reconstruction method.
 
 All take COCO-17 joints ``joints_ned`` (T, 17, 3) in metres, world NED (:mod:`skycap.frames`), with
-times ``t_ns`` (T,) int64:
+times ``t_ns`` (T,) int64. Every Y-up file (BVH, TRC) uses one frame conversion, :func:`skycap.frames.ned_to_yup`:
+X = north, Y = up, Z = east (right-handed; OpenSim's and the BVH convention of Y up).
 
-* :func:`write_joints_bvh` — a BVH animation (Y-up, centimetres, like the CMU input) of the COCO-17
+* :func:`write_joints_bvh` — a BVH animation (Y-up, **metres**) of the COCO-17
   skeleton of :mod:`reconstruction.body.skeleton17` (root ``pelvis`` = mid-hip, then hips/knees/ankles,
   spine/neck/shoulders/elbows/wrists, head with nose/eyes/ears). Joint rotations come from
   :func:`reconstruction.body.skeleton17.inverse_kinematics`; any BVH reader's forward kinematics gives
   back the COCO-17 positions (joint ``nose`` = COCO nose, ... see :data:`BVH_JOINT_FOR_COCO`) exactly
   when the input is a rigid skeleton (a body-model fit), otherwise with limb lengths fixed to their
   medians (the largest deviation is logged and returned).
+  :func:`export_motion` writes it for Blender (:func:`write_blender_bvh`): metres, so that Blender's importer
+  at its default scale 1.0 gives the person's real size (a 1.7 m person is 1.7 units tall), and resampled to
+  :data:`BLENDER_FPS` = 24 frames per second. Blender's BVH importer with its defaults ("Scale FPS",
+  "Update Scene FPS" and "Update Scene Duration" off) keys BVH frame ``i`` at scene frame ``1 + i`` whatever the
+  file's ``Frame Time`` says, and a new Blender scene runs at 24 fps: so a 24 fps file plays at real speed with
+  the defaults. The scene's end frame (250 in a new scene, 10.4 s) is not changed by the default import; a longer
+  motion is all imported (the action spans frames 1..N) but plays past frame 250 only after "Update Scene
+  Duration" is ticked or the End frame set (README, Outputs). A BVH cannot carry the scene's frame range.
+* :func:`write_joints_trc` — OpenSim / Pose2Sim marker trajectories (TRC, tab-separated): marker names are the
+  COCO-17 joint names, metres, Y-up (:func:`skycap.frames.ned_to_yup`), a constant ``DataRate`` (resampled
+  to it when the frame times are not uniform).
 * :func:`write_joints_csv` — one row per frame: ``t_s`` then ``<coco_name>_{north,east,down}_m``.
 * :func:`write_motion_npz` — ``t_ns``, ``joints_ned`` and any model parameters (``params`` dict of arrays).
 * :func:`export_motion` — all of the above plus the rerun recording (:mod:`reconstruction.viz`) into one folder.
+
+The Foxglove MCAP of a processed flight (images, annotations, drones, the skeleton) is
+:func:`flightdata.foxglove.export_foxglove`; it takes the result's ``t_ns`` and ``joints_ned``.
 
 Example::
 
@@ -25,13 +40,15 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from reconstruction.body import skeleton17 as sk
 from skycap.bvh import Skeleton, write_bvh
 from skycap.frames import R_YUP_NED, ned_to_yup
 from skycap.skeleton import COCO17_NAMES
 
-__all__ = ["BVH_JOINT_FOR_COCO", "write_joints_bvh", "write_joints_csv", "write_motion_npz", "export_motion", "bvh_skeleton"]
+__all__ = ["BLENDER_FPS", "BVH_JOINT_FOR_COCO", "TRC_UNITS", "bvh_skeleton", "export_motion", "resample_joints",
+           "write_blender_bvh", "write_joints_bvh", "write_joints_csv", "write_joints_trc", "write_motion_npz"]
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +56,14 @@ log = logging.getLogger(__name__)
 BVH_JOINT_FOR_COCO: tuple[str, ...] = tuple(sk.NODE_NAMES[n] for n in sk.COCO_TO_NODE)
 _LEAVES = (3, 6, 11, 14, 16, 17, 18, 19, 20)
 
+#: Frames per second of the BVH written for Blender: a new Blender scene's rate (bpy 5.0 factory settings: 24 fps,
+#: frames 1-250), which the importer's defaults keep (see the module docstring).
+BLENDER_FPS = 24.0
+#: Units of the TRC files (the ``Units`` header field): metres, as Pose2Sim writes them.
+TRC_UNITS = "m"
 
-def bvh_skeleton(shape: np.ndarray, units_per_m: float = 100.0) -> tuple[Skeleton, np.ndarray]:
+
+def bvh_skeleton(shape: np.ndarray, units_per_m: float = 1.0) -> tuple[Skeleton, np.ndarray]:
     """BVH skeleton of the 21 nodes (+ a zero-length End Site under each leaf) for a shape (16,).
 
     Returns (skeleton, node_index (21,) -> skeleton joint index).
@@ -65,13 +88,21 @@ def bvh_skeleton(shape: np.ndarray, units_per_m: float = 100.0) -> tuple[Skeleto
 
 
 def write_joints_bvh(
-    path: str | Path, joints_ned: np.ndarray, frame_time_s: float, shape: np.ndarray | None = None
+    path: str | Path, joints_ned: np.ndarray, frame_time_s: float, shape: np.ndarray | None = None,
+    units_per_m: float = 1.0,
 ) -> tuple[Path, float]:
-    """Write joints (T, 17, 3) NED metres as a BVH (Y-up, cm). ``shape`` (16,) is the skeleton's
-    (from the body-model fit); if None it is estimated from the joints.
+    """Write joints (T, 17, 3) NED metres as a BVH (Y-up; metres, or ``units_per_m`` units per metre, e.g. 100 for
+    centimetres). ``shape`` (16,) is the skeleton's (from the body-model fit); if None it is estimated from the joints.
 
     Returns (path, max_error_m): the largest distance between the BVH's COCO joints and the input.
     """
+    shape, R_root, R_loc, transl, err = _fit_skeleton(joints_ned, shape)
+    p = _write_skeleton_bvh(path, shape, R_root, R_loc, transl, frame_time_s, units_per_m)
+    return p, err
+
+
+def _fit_skeleton(joints_ned: np.ndarray, shape: np.ndarray | None):
+    """(shape, R_root, R_loc, transl, max_error_m): the rigid skeleton's inverse kinematics of the joints."""
     joints_ned = np.asarray(joints_ned, dtype=float)
     if joints_ned.ndim != 3 or joints_ned.shape[1:] != (17, 3):
         raise ValueError(f"joints_ned must be (T, 17, 3), got {joints_ned.shape}")
@@ -81,15 +112,117 @@ def write_joints_bvh(
     err = float(np.max(np.linalg.norm(back - joints_ned, axis=-1)))
     if err > 1e-3:
         log.warning("BVH export: joints are not a rigid skeleton; largest joint deviation %.1f mm", err * 1e3)
-    skel, idx = bvh_skeleton(shape)
-    T = joints_ned.shape[0]
+    return shape, np.asarray(R_root), np.asarray(R_loc), np.asarray(transl), err
+
+
+def _write_skeleton_bvh(path, shape, R_root, R_loc, transl, frame_time_s: float, units_per_m: float) -> Path:
+    skel, idx = bvh_skeleton(shape, units_per_m)
+    T = len(transl)
     R_all = np.broadcast_to(np.eye(3), (T, skel.num_joints, 3, 3)).copy()
     R_all[:, idx[0]] = R_YUP_NED @ R_root
     for slot, j in enumerate(sk.POSE_JOINTS):
         R_all[:, idx[j]] = R_loc[:, slot]
-    root = ned_to_yup(transl) * 100.0
-    p = write_bvh(path, skel, frame_time_s, root, R_all, rotation_order="ZYX", precision=5)
-    return p, err
+    root = ned_to_yup(transl) * units_per_m
+    return write_bvh(path, skel, frame_time_s, root, R_all, rotation_order="ZYX", precision=5)
+
+
+def resample_joints(joints_ned: np.ndarray, t_ns: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Joints (T, 17, 3) at times ``t_ns`` (T,) -> at the uniform times ``t_ns[0] + k / rate_hz`` (k = 0, 1, ... up to
+    the last time), linearly interpolated. Returns (t_ns (K,) int64, joints (K, 17, 3))."""
+    joints_ned = np.asarray(joints_ned, dtype=float)
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if rate_hz <= 0:
+        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+    if len(t_ns) != len(joints_ned):
+        raise ValueError(f"t_ns has {len(t_ns)} times for {len(joints_ned)} frames of joints")
+    if len(t_ns) < 2:
+        return t_ns.copy(), joints_ned.copy()
+    if np.any(np.diff(t_ns) <= 0):
+        raise ValueError("t_ns must increase strictly to resample the joints")
+    t_rel = (t_ns - t_ns[0]) * 1e-9
+    n = int(np.floor(t_rel[-1] * rate_hz + 1e-9)) + 1
+    t_new = np.arange(n) / rate_hz
+    i = np.clip(np.searchsorted(t_rel, t_new, side="right") - 1, 0, len(t_rel) - 2)
+    w = ((t_new - t_rel[i]) / (t_rel[i + 1] - t_rel[i]))[:, None, None]
+    out = (1.0 - w) * joints_ned[i] + w * joints_ned[i + 1]
+    return t_ns[0] + np.round(t_new * 1e9).astype(np.int64), out
+
+
+def write_blender_bvh(
+    path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray, shape: np.ndarray | None = None
+) -> tuple[Path, float]:
+    """The BVH for Blender: metres, resampled to :data:`BLENDER_FPS` (module docstring: Blender's default import
+    then gives the real size and the real speed). BVH frame ``i`` (Blender frame ``1 + i``) is the motion at
+    ``t_ns[0] + i / BLENDER_FPS`` seconds.
+
+    Resampled on the skeleton, not on the joints: the rigid skeleton is fitted at the recorded frames, then its joint
+    rotations are slerped and the root translation interpolated linearly, so that every BVH frame is the same rigid
+    skeleton (interpolating joint positions between frames 0.3 s apart would shorten the limbs by up to decimetres)
+    and the BVH equals the fit at the recorded times. Returns (path, max_error_m) as :func:`write_joints_bvh`: the
+    fit's largest joint distance from the input at the recorded frames.
+    """
+    joints_ned = np.asarray(joints_ned, dtype=float)
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if len(t_ns) != len(joints_ned):
+        raise ValueError(f"t_ns has {len(t_ns)} times for {len(joints_ned)} frames of joints")
+    # frames without every joint, or not later than the frame before, are left out (the motion is interpolated
+    # across them) so that one bad frame does not cost the file
+    keep = np.all(np.isfinite(joints_ned), axis=(1, 2)) if joints_ned.ndim == 3 else np.ones(len(t_ns), bool)
+    t_max = np.maximum.accumulate(np.where(keep, t_ns, np.iinfo(np.int64).min))
+    keep[1:] &= t_ns[1:] > t_max[:-1]
+    if not keep.any():
+        raise ValueError("no frame with every joint finite: nothing to write as a BVH")
+    if not keep.all():
+        log.warning("BVH export: left out %d of %d frames (a joint not finite, or a time not after the one before)",
+                    int((~keep).sum()), len(keep))
+    t_first = int(t_ns[0])
+    joints_ned, t_ns = joints_ned[keep], t_ns[keep]
+    shape, R_root, R_loc, transl, err = _fit_skeleton(joints_ned, shape)
+    if len(t_ns) > 1:
+        t_s = (t_ns - t_first) * 1e-9
+        t_new = np.arange(int(np.floor(t_s[-1] * BLENDER_FPS + 1e-9)) + 1) / BLENDER_FPS
+        t_new = np.clip(t_new, t_s[0], t_s[-1])  # held before the first kept frame
+        R_root = Slerp(t_s, Rotation.from_matrix(R_root))(t_new).as_matrix()
+        R_loc = np.stack([Slerp(t_s, Rotation.from_matrix(R_loc[:, j]))(t_new).as_matrix()
+                          for j in range(R_loc.shape[1])], axis=1)
+        transl = np.stack([np.interp(t_new, t_s, transl[:, a]) for a in range(3)], axis=-1)
+    return _write_skeleton_bvh(path, shape, R_root, R_loc, transl, 1.0 / BLENDER_FPS, 1.0), err
+
+
+def write_joints_trc(path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray, rate_hz: float | None = None) -> Path:
+    """OpenSim TRC marker trajectories: one marker per COCO-17 joint (named as :data:`skycap.skeleton.COCO17_NAMES`),
+    in :data:`TRC_UNITS` (metres), Y-up by :func:`skycap.frames.ned_to_yup` (X north, Y up, Z east).
+
+    ``rate_hz`` (None: the median frame rate of ``t_ns``, rounded to 0.001 Hz) is the file's ``DataRate`` and
+    ``CameraRate``; frames not on that grid are resampled onto it (:func:`resample_joints`), so ``Time`` is
+    ``(Frame# - 1) / DataRate`` from the first frame. Joints that are NaN are written as empty fields (a gap).
+    """
+    path = Path(path)
+    joints_ned = np.asarray(joints_ned, dtype=float)
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if joints_ned.ndim != 3 or joints_ned.shape[1:] != (17, 3) or len(joints_ned) != len(t_ns) or not len(t_ns):
+        raise ValueError(f"write_joints_trc needs joints (T, 17, 3) with T = len(t_ns) >= 1, got {joints_ned.shape} "
+                         f"and {len(t_ns)} times")
+    if rate_hz is None:
+        rate_hz = round(1e9 / float(np.median(np.diff(t_ns))), 3) if len(t_ns) > 1 else 30.0
+    t_rel_s = (t_ns - t_ns[0]) * 1e-9
+    if len(t_ns) > 1 and np.abs(t_rel_s - np.arange(len(t_ns)) / rate_hz).max() > 1e-6:
+        t_ns, joints_ned = resample_joints(joints_ned, t_ns, rate_hz)
+    P = ned_to_yup(joints_ned)  # (T, 17, 3) X north, Y up, Z east, metres
+    T, M = len(P), len(COCO17_NAMES)
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{rate_hz:g}\t{rate_hz:g}\t{T}\t{M}\t{TRC_UNITS}\t{rate_hz:g}\t1\t{T}",
+        "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in COCO17_NAMES).rstrip("\t"),
+        "\t\t" + "\t".join(f"X{m + 1}\tY{m + 1}\tZ{m + 1}" for m in range(M)),
+        "",
+    ]
+    for k in range(T):
+        vals = "\t".join("" if not np.isfinite(v) else f"{v:.6f}" for v in P[k].ravel())
+        lines.append(f"{k + 1}\t{k / rate_hz:.6f}\t{vals}")
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
 def write_joints_csv(path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray) -> Path:
@@ -125,7 +258,8 @@ def export_motion(
     rrd: bool = True,
     capture=None,
 ) -> dict[str, Path]:
-    """Write ``<stem>.bvh``, ``<stem>.npz``, ``<stem>.csv`` and ``<stem>.rrd`` into ``out_dir``.
+    """Write ``<stem>.bvh`` (for Blender: :func:`write_blender_bvh`), ``<stem>.trc`` (OpenSim), ``<stem>.npz``,
+    ``<stem>.csv`` and ``<stem>.rrd`` into ``out_dir``.
 
     ``cameras``: optional list of dicts ``{"name", "t_ns" (F,), "T_world_cam" (F,4,4), "K" (3,3),
     "width_px", "height_px"}`` drawn in the recording; ``capture``: optional
@@ -134,10 +268,11 @@ def export_motion(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_ns = np.asarray(t_ns, dtype=np.int64)
-    dt = float(np.median(np.diff(t_ns))) * 1e-9 if len(t_ns) > 1 else 1 / 30
     paths: dict[str, Path] = {}
-    paths["bvh"], err = write_joints_bvh(out / f"{stem}.bvh", joints_ned, dt, shape)
-    paths["npz"] = write_motion_npz(out / f"{stem}.npz", joints_ned, t_ns, params, bvh_max_error_m=err)
+    paths["bvh"], err = write_blender_bvh(out / f"{stem}.bvh", joints_ned, t_ns, shape)
+    paths["trc"] = write_joints_trc(out / f"{stem}.trc", joints_ned, t_ns)
+    paths["npz"] = write_motion_npz(out / f"{stem}.npz", joints_ned, t_ns, params, bvh_max_error_m=err,
+                                    bvh_fps=BLENDER_FPS)
     paths["csv"] = write_joints_csv(out / f"{stem}.csv", joints_ned, t_ns)
     if rrd:
         from reconstruction.viz import write_rrd

@@ -126,5 +126,5 @@ def test_run_directly_reports_progress(tmp_path):
     res = run(cap, MonocularRunConfig(variant="paper", pipeline=pipe, rrd=False), out_dir=tmp_path / "o",
               progress=lambda *a: calls.append(a))
     assert calls[-2:] == [("export", 0, 1), ("export", 1, 1)]
-    assert set(res.outputs) == {"bvh", "npz", "csv"} and all(p.is_file() for p in res.outputs.values())
+    assert set(res.outputs) == {"bvh", "trc", "npz", "csv"} and all(p.is_file() for p in res.outputs.values())
     assert json.loads((tmp_path / "o" / "summary.json").read_text()) == res.summary

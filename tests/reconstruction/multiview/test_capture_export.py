@@ -46,20 +46,20 @@ def test_capture_rejects_bad_shapes():
 def test_bvh_roundtrip_independent_reader(tmp_path):
     bvhio = pytest.importorskip("bvhio")
     J, t_ns, shape = _walker()
-    path, err = write_joints_bvh(tmp_path / "m.bvh", J, 1 / 30, shape)
+    path, err = write_joints_bvh(tmp_path / "m.bvh", J, 1 / 30, shape)  # metres
     assert err < 1e-6
     root = bvhio.readAsHierarchy(str(path))
     joints = {j.Name: j for j, _, _ in root.layout()}
     for f in (0, 17, len(J) - 1):
         root.loadPose(f)
-        P = np.array([list(joints[n].PositionWorld) for n in BVH_JOINT_FOR_COCO]) / 100.0
+        P = np.array([list(joints[n].PositionWorld) for n in BVH_JOINT_FOR_COCO])
         assert np.abs(yup_to_ned(P) - J[f]).max() < 1e-3
 
 
 def test_export_motion_writes_all(tmp_path):
     J, t_ns, shape = _walker(10)
     paths = export_motion(tmp_path, J, t_ns, params={"shape": shape}, shape=shape)
-    assert set(paths) == {"bvh", "npz", "csv", "rrd"}
+    assert set(paths) == {"bvh", "trc", "npz", "csv", "rrd"}
     z = np.load(paths["npz"])
     np.testing.assert_allclose(z["joints_ned"], J)
     csv = np.loadtxt(paths["csv"], delimiter=",", skiprows=1)

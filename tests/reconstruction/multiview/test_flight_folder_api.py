@@ -127,7 +127,7 @@ def test_reconstruct_cli_sortie_writes_the_recordings_into_the_summary(two_sorti
     for k in ("frames", "cameras", "fit_seconds", "outputs"):  # the summary's fields before sorties, unchanged
         assert k in s
     assert (out / "config.toml").is_file() and (out / "capture.npz").is_file()
-    assert set(s["outputs"]) == {"bvh", "npz", "csv", "rrd"}
+    assert set(s["outputs"]) == {"bvh", "trc", "npz", "csv", "rrd"}
 
 
 def test_run_directly_reports_progress(two_sortie_flight, tmp_path):
@@ -153,7 +153,7 @@ def test_run_directly_reports_progress(two_sortie_flight, tmp_path):
     stages = [c[0] for c in calls]
     assert calls[:2] == [("read", 1, 2), ("read", 2, 2)]
     assert "fit" in stages and calls[-1] == ("export", 1, 1)
-    assert set(res.outputs) == {"bvh", "npz", "csv"} and all(p.is_file() for p in res.outputs.values())
+    assert set(res.outputs) == {"bvh", "trc", "npz", "csv"} and all(p.is_file() for p in res.outputs.values())
     assert json.loads((tmp_path / "o" / "summary.json").read_text()) == res.summary
 
 
