@@ -19,9 +19,3 @@ else
     echo "setup: no gobject-introspection / cairo development files for PyGObject; the GStreamer camera sources are off" \
          "(run scripts/setup-system.sh as root)" >&2
 fi
-# Blender as a Python module, for the test that imports the BVH export the way Blender does: bpy 5.0 pins numpy<2
-# (the project needs numpy>=2), so it gets its own environment beside .venv (pyproject.toml, test extra)
-if [ ! -x .venv-blender/bin/python ] || ! .venv-blender/bin/python -c "import bpy" 2>/dev/null; then
-    python -m venv .venv-blender && .venv-blender/bin/python -m pip install -q bpy==5.0.1 \
-        || echo "setup: bpy 5.0.1 (Python 3.11 only) did not install into .venv-blender; the Blender import test is skipped" >&2
-fi

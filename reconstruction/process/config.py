@@ -64,11 +64,12 @@ class WindowsConfig:
 
 @dataclasses.dataclass
 class ExportConfig:
-    """Outputs: ``motion.{bvh,npz,csv}`` (+ ``motion.rrd`` with ``rrd``) as ``skycap reconstruct`` always wrote, and
-    the named ``extra`` exporters registered with :func:`reconstruction.process.export.register_exporter`."""
+    """Outputs: ``motion.{bvh,npz,csv,trc}`` (+ ``motion.rrd`` with ``rrd``), and the named ``extra`` exporters
+    registered with :func:`reconstruction.process.export.register_exporter` (default: ``foxglove``, the processed
+    flight as ``flight.foxglove.mcap``)."""
 
     rrd: bool = True
-    extra: list[str] = dataclasses.field(default_factory=list)
+    extra: list[str] = dataclasses.field(default_factory=lambda: ["foxglove"])
 
 
 @dataclasses.dataclass

@@ -65,6 +65,20 @@ def register_exporter(name: str, fn: Exporter) -> None:
     EXPORTERS[name] = fn
 
 
+def export_foxglove_mcap(ctx: ExportContext) -> dict[str, Path]:
+    """``export.extra = ["foxglove"]`` (on by default): the processed flight as a Foxglove MCAP in Foxglove's schemas
+    (:func:`flightdata.foxglove.export_foxglove`: camera images with the boxes and keypoints, drones and cameras as
+    transforms, the person track, the reconstructed skeleton) beside the motion files, as ``flight.foxglove.mcap``."""
+    from flightdata.folder import FOXGLOVE_FILE
+    from flightdata.foxglove import export_foxglove
+
+    res = export_foxglove(ctx.flight, ctx, ctx.out_dir / FOXGLOVE_FILE, sortie=ctx.config.sortie_or_none, overwrite=True)
+    return {"foxglove": Path(res.path)}
+
+
+register_exporter("foxglove", export_foxglove_mcap)
+
+
 def run_exporters(ctx: ExportContext, names: list[str]) -> dict[str, Path]:
     out: dict[str, Path] = {}
     for n in names:

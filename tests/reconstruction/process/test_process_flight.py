@@ -22,8 +22,14 @@ def test_the_models_give_a_motion_near_the_truth(processed):
     assert res.keypoints_source == "+".join(TEST_MODELS) == res.summary["keypoints_source"]
     assert res.method == "multiview" and res.drones == ["drone_1", "drone_2"] and not res.skipped
     assert res.joints_ned.shape == (len(res.t_ns), 17, 3) and np.all(np.isfinite(res.joints_ned))
-    for k in ("bvh", "npz", "csv"):
-        assert res.outputs[k].is_file()
+    for k in ("bvh", "npz", "csv", "trc", "foxglove"):
+        assert res.outputs[k].is_file(), k
+    # the Foxglove MCAP of the processed flight (flightdata.foxglove; decoded schema by schema in its own tests)
+    from mcap.reader import make_reader
+
+    with open(res.outputs["foxglove"], "rb") as f:
+        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    assert {"/drone_1/camera/image", "/drone_2/camera/annotations", "/tf", "/reconstruction/skeleton"} <= topics, topics
     s = json.loads((res.out_dir / "summary.json").read_text())
     assert s["seconds"] > 0 and s["steps"]["keypoints"]["models"] == TEST_MODELS
     assert all(v["detection"] > 10 for v in s["box_sources"].values()), s["box_sources"]
