@@ -38,7 +38,9 @@ def test_short_px4_demo_produces_a_sane_summary(tmp_path):
     out = tmp_path / "flight"
     cmd = [sys.executable, "-m", "apps.cli", "demo", "--autopilot", "px4", "--px4-dir", str(folder), "--drones", "2",
            "--duration", "20", "--out", str(out), "--set", f"px4_first_instance={first}",
-           "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"", "--set", "fleet=\"px4test\""]
+           "--set", f"zenoh_endpoint=\"tcp/127.0.0.1:{free_tcp_port()}\"", "--set", "fleet=\"px4test\"",
+           # the reconstruction from the simulator's keypoints: the keypoint models are tested on the built-in fleet
+           "--set", 'reconstruct_keypoints="sim"']
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=420)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
     for name in ("drone_1.s001.mcap", "drone_2.s001.mcap", "truth.mcap", "plan.json", "summary.json"):

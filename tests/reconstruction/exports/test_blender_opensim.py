@@ -43,16 +43,20 @@ def motion(tmp_path_factory):
     return paths, csv[:, 0], csv[:, 1:].reshape(-1, 17, 3)  # t_s, joints NED from the CSV
 
 
-def _opensim():
-    """The ``opensim`` module, imported without leaving its environment behind: importing it prepends its folder to
-    PATH and LD_LIBRARY_PATH (and sets SIMBODY_HOME), so that every later subprocess of this test session would load
-    OpenSim's bundled libcasadi instead of the casadi package's own (the formation MPC's import then fails)."""
-    env = dict(os.environ)
-    try:
-        return pytest.importorskip("opensim")
-    finally:
-        os.environ.clear()
-        os.environ.update(env)
+#: OpenSim's TRC reader, run in a child process: importing ``opensim`` loads its bundled libcasadi into the process
+#: and prepends its folder to PATH / LD_LIBRARY_PATH, after which the casadi package (the formation MPC) no longer
+#: imports in that process or its children -- so the test session itself never imports it
+_OPENSIM_READ = """
+import json, sys
+import opensim as osim
+t = osim.TimeSeriesTableVec3(sys.argv[1])
+rows = [int(r) for r in sys.argv[2:]]
+labels = list(t.getColumnLabels())
+print("RESULT " + json.dumps({
+    "meta": {k: t.getTableMetaDataAsString(k) for k in t.getTableMetaDataKeys()},
+    "rows": t.getNumRows(), "labels": labels, "times": list(t.getIndependentColumn()),
+    "values": [[[t.getDependentColumn(n)[k].get(a) for a in range(3)] for n in labels] for k in rows]}))
+"""
 
 
 def _csv_at(t_csv_s, J_csv, t_s: float) -> np.ndarray:
@@ -103,35 +107,43 @@ def test_blender_imports_real_size_and_speed_with_defaults(motion):
     assert 1.2 < z.max() - z.min() < 2.0
 
 
+def _read_in_opensim(trc: Path, rows: list[int]) -> dict:
+    """OpenSim's reading of ``trc``: {"meta", "rows", "labels", "times", "values" (the ``rows``' markers)}."""
+    if importlib.util.find_spec("opensim") is None:
+        pytest.skip("the opensim package is not installed (test extra: pip install opensim)")
+    r = subprocess.run([sys.executable, "-c", _OPENSIM_READ, str(trc), *map(str, rows)], capture_output=True,
+                       text=True, timeout=120)
+    line = next((ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")), None)
+    assert r.returncode == 0 and line, f"OpenSim could not read the TRC:\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
+    return json.loads(line[len("RESULT "):])
+
+
 def test_trc_reads_back_in_opensim(motion, tmp_path):
-    osim = _opensim()
     paths, t_csv, J_csv = motion
-    table = osim.TimeSeriesTableVec3(str(paths["trc"]))
-    meta = {k: table.getTableMetaDataAsString(k) for k in table.getTableMetaDataKeys()}
+    t = _read_in_opensim(paths["trc"], [0, 57, 119])
+    meta = t["meta"]
     assert meta["Units"] == "m" and float(meta["DataRate"]) == 10.0 and float(meta["CameraRate"]) == 10.0
-    assert int(meta["NumFrames"]) == table.getNumRows() == 120 and int(meta["NumMarkers"]) == 17
-    assert list(table.getColumnLabels()) == list(COCO17_NAMES)
-    np.testing.assert_allclose(list(table.getIndependentColumn()), t_csv, atol=1e-6)
-    got = np.array([[[table.getDependentColumn(n)[k].get(a) for a in range(3)] for n in COCO17_NAMES]
-                    for k in (0, 57, 119)])
+    assert int(meta["NumFrames"]) == t["rows"] == 120 and int(meta["NumMarkers"]) == 17
+    assert t["labels"] == list(COCO17_NAMES)
+    np.testing.assert_allclose(t["times"], t_csv, atol=1e-6)
+    got = np.array(t["values"])
     np.testing.assert_allclose(got, ned_to_yup(J_csv[[0, 57, 119]]), atol=1e-6)  # X north, Y up, Z east
     assert got[0, :, 1].max() > 1.4  # Y is up: the nose is ~1.6 m above the ground
 
 
 def test_trc_resamples_irregular_times_and_marks_gaps(tmp_path):
-    osim = _opensim()
     J, t_ns, *_ = procedural_walker(31, fps=30.0)
     keep = np.r_[0:10, 11:31]  # one dropped frame: 30 Hz times with a gap
     Jg = J[keep].copy()
     Jg[3, 9] = np.nan  # the left wrist unseen in one frame
     p = write_joints_trc(tmp_path / "gap.trc", Jg, t_ns[keep], rate_hz=30.0)
-    table = osim.TimeSeriesTableVec3(str(p))
-    assert table.getNumRows() == 31 and float(table.getTableMetaDataAsString("DataRate")) == 30.0
-    np.testing.assert_allclose(list(table.getIndependentColumn()), np.arange(31) / 30.0, atol=1e-6)
+    t = _read_in_opensim(p, [3, 10])
+    assert t["rows"] == 31 and float(t["meta"]["DataRate"]) == 30.0
+    np.testing.assert_allclose(t["times"], np.arange(31) / 30.0, atol=1e-6)
     _, Jr = resample_joints(Jg, t_ns[keep], 30.0)
-    v = table.getDependentColumn("nose")[10]
-    np.testing.assert_allclose([v.get(a) for a in range(3)], ned_to_yup(Jr[10, 0]), atol=1e-6)
-    assert np.isnan(table.getDependentColumn("left_wrist")[3].get(0))
+    got = np.array(t["values"], dtype=float)  # (2 rows, 17 markers, 3)
+    np.testing.assert_allclose(got[1, COCO17_NAMES.index("nose")], ned_to_yup(Jr[10, 0]), atol=1e-6)
+    assert np.isnan(got[0, COCO17_NAMES.index("left_wrist"), 0])
 
 
 def test_resample_joints_is_linear_and_uniform():
