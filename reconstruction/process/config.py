@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from reconstruction.keypoints import DEFAULT_MODELS, KEYPOINT_MODELS
+from reconstruction.keypoints import KEYPOINT_MODELS
 from reconstruction.monocular.reconstruct import MonocularRunConfig
 from reconstruction.multiview.run import MultiviewConfig
 from reconstruction.process.events import ProcessError
@@ -38,8 +38,11 @@ class KeypointsConfig:
     ``cancel`` is checked) and frames per cached chunk (``chunk_frames``: what a resumed run does not redo)."""
 
     source: str = "models"
-    models: list[str] = dataclasses.field(default_factory=lambda: list(DEFAULT_MODELS))
-    threads: int = 1
+    #: MoveNet Lightning + BlazePose Full: measured on a 3-drone demo flight (bench note in reconstruction/process/
+    #: README.md) as accurate as Thunder + BlazePose (MPJPE 94.7 vs 104.5 mm) at 0.6x its keypoint time
+    models: list[str] = dataclasses.field(default_factory=lambda: ["movenet_lightning", "blazepose_full"])
+    #: onnxruntime intra-op threads per model: 2 uses both cores of a 2-core laptop (keypoints 75 -> 44 s there)
+    threads: int = 2
     crop_scale: float = 1.25
     batch_size: int = 16
     chunk_frames: int = 64
