@@ -4,6 +4,7 @@ used) and the library API (``reconstruction.api.reconstruct_flight``, ``multivie
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -127,7 +128,9 @@ def test_reconstruct_cli_sortie_writes_the_recordings_into_the_summary(two_sorti
     for k in ("frames", "cameras", "fit_seconds", "outputs"):  # the summary's fields before sorties, unchanged
         assert k in s
     assert (out / "config.toml").is_file() and (out / "capture.npz").is_file()
-    assert set(s["outputs"]) == {"bvh", "trc", "npz", "csv", "rrd"}
+    # the motion files and the processed flight as a Foxglove MCAP (export.extra = ["foxglove"] by default)
+    assert set(s["outputs"]) == {"bvh", "trc", "npz", "csv", "rrd", "foxglove"}
+    assert all(Path(p).is_file() for p in s["outputs"].values()), s["outputs"]
 
 
 def test_run_directly_reports_progress(two_sortie_flight, tmp_path):
