@@ -8,7 +8,7 @@
 
     skycap demo --autopilot px4 --drones 2             # the same on real PX4 SITL (SIH) from ../shared/px4-sitl
     skycap demo --sorties 2                            # take off, orbit, land twice without restarting anything
-    skycap demo --motion ../shared/data/mocap/cmu/005/005_10.bvh    # the person performs a recorded motion
+    skycap demo --motion cmu/005/005_10.bvh                          # the person performs a recorded motion
 
 ``--motion FILE.bvh`` (``motion.*``, :class:`simulator.scene.person.PersonMotionConfig`): the simulated person
 performs that recorded motion (any CMU-style BVH: rig, axes and unit detected, what was assumed logged) instead of

@@ -4,7 +4,7 @@ skycap sim --drones 3                                   # vehicles 1..3 -> udp 1
 skycap sim --drones 1 --set wind.mean_speed_m_s=5 --set battery.start_percent=20
 skycap sim --config sim.toml --duration 60
 skycap sim --drones 3 --fleet demo --zenoh-connect tcp/127.0.0.1:7447   # + ground truth on the fleet's sim/truth
-skycap sim --fleet demo --motion ../shared/data/mocap/cmu/005/005_10.bvh --set motion.end=clamp   # a recorded motion
+skycap sim --fleet demo --motion cmu/005/005_10.bvh --set motion.end=clamp   # a recorded motion
 
 ``--motion FILE.bvh`` (``motion.file``): the simulated person performs that recorded motion (any CMU-style BVH,
 placed at ``motion.center_ne_m`` on the ground, looped or clamped: :mod:`simulator.scene.person`) instead of the

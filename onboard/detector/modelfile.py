@@ -68,11 +68,8 @@ def _read_manifest(folder: Path) -> dict[str, str]:
 
 
 def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def resolve_model(filename: str, package_dir: Path, rel_hint: str) -> Path:

@@ -19,7 +19,7 @@ from reconstruction.jobs.events import JobCancelled, JobStatus, ProgressEvent, T
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Job"]
+__all__ = ["Job", "Runner"]
 
 _NO_RESULT = object()
 
@@ -237,6 +237,32 @@ def _call(cb: Callable, arg: Any) -> None:
         cb(arg)
     except Exception:  # noqa: BLE001 - a subscriber's bug must not stop the job's bookkeeping
         log.exception("job callback %r failed", cb)
+
+
+class Runner:
+    """What every runner shares: the jobs it was given (``jobs``, guarded by ``_lock``) and use as a context
+    manager (``with LocalRunner() as r:`` closes it, cancelling what still runs). Subclasses define ``name``,
+    ``submit`` and ``close``."""
+
+    name = ""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._jobs: list[Job] = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self, *, cancel: bool = True, timeout: float | None = None) -> None:
+        raise NotImplementedError
+
+    @property
+    def jobs(self) -> list[Job]:
+        with self._lock:
+            return list(self._jobs)
 
 
 def dispatch(job: Job, msg: tuple) -> bool:

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from reconstruction.jobs.events import JobError, JobFailed, JobStatus
-from reconstruction.jobs.job import Job, dispatch
+from reconstruction.jobs.job import Job, Runner, dispatch
 from reconstruction.jobs.registry import processor_spec
 from reconstruction.jobs.units import ProcessUnits
 
@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 __all__ = ["LocalRunner"]
 
 
-class LocalRunner:
+class LocalRunner(Runner):
     """Worker processes on this machine (the default runner).
 
     workers: flights processed at once; threads_per_worker: the BLAS / OpenMP / torch threads of each worker
@@ -52,27 +52,15 @@ class LocalRunner:
         self.cancel_grace_s = float(cancel_grace_s)
         # spawn: safe from a threaded parent (the Qt app, Ray, torch); each worker imports what it needs
         self._ctx = multiprocessing.get_context(start_method)
-        self._lock = threading.Lock()
+        super().__init__()
         self._pending: collections.deque[tuple[Job, str]] = collections.deque()
         self._running: dict[str, tuple[Job, Any]] = {}
-        self._jobs: list[Job] = []
         self._closed = False
         # before multiprocessing's own exit handler joins the (non-daemonic: they may start unit processes) workers
         atexit.register(_close_at_exit, weakref.ref(self))
 
     def __repr__(self) -> str:
         return f"LocalRunner(workers={self.workers})"
-
-    def __enter__(self) -> "LocalRunner":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    @property
-    def jobs(self) -> list[Job]:
-        with self._lock:
-            return list(self._jobs)
 
     def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "process") -> Job:
         """Queue ``processor(flight_dir, config, progress, cancel)``; it starts when a worker is free."""

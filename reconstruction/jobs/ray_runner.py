@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from reconstruction.jobs.events import JobCancelled, JobError, JobFailed, JobStatus
-from reconstruction.jobs.job import Job, dispatch
+from reconstruction.jobs.job import Job, Runner, dispatch
 from reconstruction.jobs.registry import processor_spec
 
 log = logging.getLogger(__name__)
@@ -44,7 +44,7 @@ def _ray():
     return ray
 
 
-class RayRunner:
+class RayRunner(Runner):
     """Jobs as Ray tasks on the cluster at ``address`` (None/"auto": the running cluster this machine belongs to;
     "local": start a one-machine cluster in this process; "HOST:PORT": that head's GCS).
 
@@ -60,8 +60,7 @@ class RayRunner:
         ray = _ray()
         self.num_cpus_per_job = float(num_cpus_per_job)
         self.unit_cpus = float(unit_cpus)
-        self._jobs: list[Job] = []
-        self._lock = threading.Lock()
+        super().__init__()
         self._owns = False
         if ray.is_initialized():
             log.info("Ray runner on the cluster this process is already connected to")
@@ -82,17 +81,6 @@ class RayRunner:
 
     def __repr__(self) -> str:
         return f"RayRunner({self.address!r})"
-
-    def __enter__(self) -> "RayRunner":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    @property
-    def jobs(self) -> list[Job]:
-        with self._lock:
-            return list(self._jobs)
 
     def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "process") -> Job:
         """Submit ``processor(flight_dir, config, progress, cancel)`` as a Ray task; it runs when the cluster has
