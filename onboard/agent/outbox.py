@@ -136,6 +136,15 @@ class Outbox:
             except Exception as e:
                 log.debug("%s: closing the failed recorder: %s", self.drone_id, e)
 
+    def detach_recorder(self) -> Any:
+        """Shutdown: the recorder in use (a failed one was replaced; None if none is open) handed to the caller to
+        close, and no recording from now on. What other threads still record after this (a message received while
+        the transport closes) is dropped: it must not count as a failure and open a new sortie file."""
+        rec, self.recorder = (None if self._record_failed else self.recorder), None
+        self.reopen_recorder = None
+        self._record_failed = False
+        return rec
+
     def _reopen(self) -> bool:
         """A new recorder in place of the failed one (at most every ``reopen_interval_s``); whether one is open."""
         if self.recorder is not None and not self._record_failed:

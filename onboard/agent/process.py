@@ -66,7 +66,9 @@ async def run_agent(cfg: AgentConfig) -> int:
     try:
         await agent.run(stop)
     finally:
-        recorder = agent.outbox.recorder  # the one in use (a failed one was replaced)
+        # the one in use (a failed one was replaced), detached first: a message recorded while the camera and the
+        # transport shut down must not find it closed, count a failure and open a new sortie
+        recorder = agent.outbox.detach_recorder()
         if cfg.mode == "track" and recorder is not None:
             try:
                 p = Sortie.of(recorder.path).track_stats_path  # this sortie's counters, beside its recording

@@ -109,6 +109,24 @@ def test_outbox_replaces_a_failed_recorder_and_reports_it():
     assert out.recorder is not None and out.recorder.records[-1][1] == b"d"
 
 
+def test_outbox_after_detach_records_nothing_and_opens_no_new_sortie():
+    """At shutdown the recorder is detached, then closed: a message that another thread records meanwhile (the
+    transport still delivering) is dropped, not a failure that opens a new sortie file."""
+    rec = FakeRecorder()
+    opened: list[FakeRecorder] = []
+    out = Outbox("f", "drone_1", FakeBus(), rec)
+    out.reopen_recorder = lambda: opened.append(FakeRecorder()) or opened[-1]
+    out.reopen_interval_s = 0.0
+    out.record(out.key(keys.STATE), b"a")
+    assert out.detach_recorder() is rec
+    rec.fail = True  # closed
+    out.record(out.key(keys.STATE), b"b")
+    assert [r[1] for r in rec.records] == [b"a"] and opened == [] and out.recorder_failures == []
+    failed = Outbox("f", "drone_1", FakeBus(), FakeRecorder(fail=True))
+    failed.record(failed.key(keys.STATE), b"x")
+    assert failed.detach_recorder() is None  # a failed recorder was already let go
+
+
 class StatsRecorder(FakeRecorder):
     """A recorder with the real one's reporting surface: ``path``, ``stats()``, ``error``."""
 

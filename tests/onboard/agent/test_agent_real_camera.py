@@ -48,7 +48,9 @@ def test_agent_records_and_detects_on_a_gstreamer_camera(flight, tmp_path):
     time.sleep(6.0)  # ~90 frames
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(30) == 0, fl.log("drone_1")
-    [sortie] = FlightFolder(fl.tmp).sorties("drone_1")
+    sorties = FlightFolder(fl.tmp).sorties("drone_1")
+    assert len(sorties) == 1, (sorties, fl.log("drone_1"))  # one start, one sortie (no reopen at shutdown)
+    [sortie] = sorties
     log = FlightLog(sortie.path)
     frames = [m for m in log.messages(["camera/image"])]
     assert len(frames) >= 40, log.topic_counts()
