@@ -123,9 +123,10 @@ class CameraNode:
         self.cfg = cfg.validate()
         self.cam_cfg = cfg.camera
         self.cam = PinholeCamera.from_config(cfg.camera)
-        self.renderer = Renderer(self.cam, cfg.camera, cfg.person)
-        # distinct, reproducible noise per drone
-        seed = cfg.sim_detector.seed + sum(drone_id.encode()) * 7919
+        # distinct, reproducible noise per drone (image noise and simulated detections)
+        drone_salt = sum(drone_id.encode()) * 7919
+        self.renderer = Renderer(self.cam, cfg.camera, cfg.person, noise_seed=cfg.camera.noise_seed + drone_salt)
+        seed = cfg.sim_detector.seed + drone_salt
         self.kp_detector = SimKeypointDetector(cfg.sim_detector, np.random.default_rng(seed))
         self.box_detector = SimBoxDetector(cfg.sim_detector, np.random.default_rng(seed + 1))
         self.truth_source = truth_source

@@ -112,7 +112,10 @@ class Renderer:
         max_person_samples: int = 60_000,
         shadows: bool = True,
         ground_grid_px: int = 4,
+        noise_seed: int | None = None,
     ):
+        """``noise_seed``: the image noise's seed (None: ``cam_cfg.noise_seed``); each camera of a fleet passes its
+        own, so that no two drones' images carry the same noise."""
         self.cam = cam
         cam_cfg = cam_cfg or CameraConfig()
         person_cfg = person_cfg or PersonConfig()
@@ -143,7 +146,7 @@ class Renderer:
         self._grid_y = Y.astype(np.float32)
         self.person_model = cam_cfg.person_model
         self.blur_sigma_px, self.noise_std = (float(v) for v in cam_cfg.camera_effects())
-        self._noise_rng = np.random.default_rng(cam_cfg.noise_seed)
+        self._noise_rng = np.random.default_rng(cam_cfg.noise_seed if noise_seed is None else noise_seed)
         self._noise_pool: np.ndarray | None = None
         self.anny = None
         if self.person_model == "anny":

@@ -193,3 +193,12 @@ def test_camera_node_renders_the_anny_person(scene):
     empty = Renderer(node.cam, cfg.camera, cfg.person).render(T, None).image
     roi = (slice(int(b.y_min_px), int(b.y_max_px)), slice(int(b.x_min_px), int(b.x_max_px)))
     assert np.mean(np.abs(img[roi].astype(int) - empty[roi].astype(int)).sum(-1) > 40) > 0.2
+
+
+def test_each_drone_camera_has_its_own_image_noise():
+    from simulator.scene.camera_node import CameraNode
+
+    cfg = SceneConfig(camera=CameraConfig(width_px=64, height_px=36, noise_std=2.0, noise_seed=4))
+    a, b, a2 = (CameraNode(d, cfg, lambda: None, lambda t, m: None).renderer for d in ("drone_1", "drone_2", "drone_1"))
+    assert a._noise_rng.bit_generator.state == a2._noise_rng.bit_generator.state  # reproducible per drone
+    assert a._noise_rng.bit_generator.state != b._noise_rng.bit_generator.state  # not shared between drones
