@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 from flightdata.flightlog import FlightLog
 from flightdata.folder import FlightFolder
 from reconstruction.capture import CameraCapture, Capture, interpolate_poses
-from reconstruction.metrics import accuracy_metrics
+from reconstruction.metrics import accuracy_metrics, root_positions
 from reconstruction.multiview.fit import FitConfig, fit_capture
 from reconstruction.multiview.flight import output_grid
 from shared_msgs import SimTruth
@@ -51,7 +51,7 @@ from skycap.skeleton import SCORED_JOINTS
 log = logging.getLogger(__name__)
 
 __all__ = ["AblationError", "TruthTracks", "read_truth", "true_camera_track", "substitute_poses", "exact_keypoints",
-           "pose_errors", "estimate_time_lag_s", "pan_tilt_roll", "camera_rotation", "ROWS", "ablation_captures", "score", "run_ablation",
+           "pose_errors", "estimate_time_lag_s", "joint_offsets_body_frame", "pan_tilt_roll", "camera_rotation", "ROWS", "ablation_captures", "score", "run_ablation",
            "format_ablation"]
 
 #: the ablation's rows in order: name -> (true positions, attitude, exact 2D); attitude: "recorded", "true", "tilt"
@@ -287,11 +287,39 @@ def score(t_ns: np.ndarray, joints_ned: np.ndarray, truth: TruthTracks, window_n
     gt = truth.joints_at(t)
     sj = list(SCORED_JOINTS)
     out = accuracy_metrics(pred, gt, sj)
+    sel = np.ones(len(t), bool)
     if window_ns is not None:
         sel = (t >= window_ns[0]) & (t <= window_ns[1])
         if sel.any():
             out.update(accuracy_metrics(pred[sel], gt[sel], sj, suffix="_window"))
+    if sel.any():  # the root error's constant part (a bias) and what varies around it
+        d = (root_positions(pred[sel]) - root_positions(gt[sel])) * 1e3
+        out["root_bias_ned_mm_window"] = [round(float(x), 1) for x in d.mean(0)]
+        out["root_err_demeaned_rms_mm_window"] = round(float(np.sqrt(np.mean(np.sum((d - d.mean(0)) ** 2, -1)))), 1)
     return {k: v for k, v in out.items() if not k.startswith("per_group")}
+
+
+def joint_offsets_body_frame(pred: np.ndarray, gt: np.ndarray) -> dict[str, dict]:
+    """Per COCO-17 joint, the root-aligned error of ``pred`` against ``gt`` (T, 17, 3) NED metres split into its
+    constant part -- the mean signed offset in the person's body frame (forward, left, up; from the true hips and
+    the world vertical), mm -- and the RMS of what varies around it (mm): a keypoint convention that puts a joint on
+    the body's surface instead of at the skeleton's joint centre shows as an offset, noise as the rest."""
+    from skycap.skeleton import COCO17_NAMES
+
+    pred, gt = np.asarray(pred, dtype=float), np.asarray(gt, dtype=float)
+    e = (pred - root_positions(pred)[:, None]) - (gt - root_positions(gt)[:, None])  # (T, 17, 3)
+    up = np.array([0.0, 0.0, -1.0])
+    left = gt[:, 11] - gt[:, 12]
+    left[:, 2] = 0.0
+    left /= np.maximum(np.linalg.norm(left, axis=-1, keepdims=True), 1e-9)
+    fwd = np.cross(left, up)
+    B = np.stack([fwd, left, np.broadcast_to(up, fwd.shape)], axis=1)  # (T, 3, 3): rows = body axes in NED
+    eb = np.einsum("tij,tnj->tni", B, e) * 1e3
+    mean = eb.mean(0)
+    rest = np.sqrt(np.mean(np.sum((eb - mean) ** 2, -1), 0))
+    return {COCO17_NAMES[j]: {"offset_fwd_left_up_mm": [round(float(x), 1) for x in mean[j]],
+                              "offset_mm": round(float(np.linalg.norm(mean[j])), 1), "varying_rms_mm": round(float(rest[j]), 1)}
+            for j in range(17)}  # fmt: skip
 
 
 def _lever_arm(flight: FlightFolder, drone_ids: list[str]) -> np.ndarray:
@@ -409,7 +437,8 @@ def format_ablation(table: dict) -> str:
         ref = ", ".join(f"{v.get('att_err_rms_deg')}" for v in r.get("refined_pose_errors", {}).values())
         lines.append(f"{name:<16s} {r[f'mpjpe_mm{sfx}']:7.1f} {r[f'pa_mpjpe_mm{sfx}']:7.1f} {r[f'w_mpjpe_mm{sfx}']:8.1f} "
                      f"{r[f'root_err_mm{sfx}']:7.1f}  ({r['mpjpe_mm']:.1f}/{r['w_mpjpe_mm']:.1f}; fit "
-                     f"{r['fit_seconds']} s)  [{ref}]")
+                     f"{r['fit_seconds']} s)  [{ref}]  root bias NED {r.get('root_bias_ned_mm_window')}, "
+                     f"around it {r.get('root_err_demeaned_rms_mm_window')}")
     return "\n".join(lines)
 
 

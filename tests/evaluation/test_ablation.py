@@ -93,3 +93,23 @@ def test_exact_keypoints_project_the_true_joints():
         assert np.allclose(uv[ok], out.keypoints_px[f, 0][ok], atol=1e-6)
     assert not np.allclose(out.keypoints_px, 0.0)
 
+
+
+def test_joint_offsets_split_a_constant_offset_from_noise():
+    from evaluation.ablation import joint_offsets_body_frame
+
+    rng = np.random.default_rng(1)
+    T = 200
+    heading = np.linspace(0, 2 * np.pi, T)  # the person turns: a body-frame offset is not a world one
+    gt = rng.normal(0, 0.3, (17, 3))[None].repeat(T, 0)
+    fwd = np.stack([np.cos(heading), np.sin(heading), 0 * heading], -1)
+    left = np.stack([np.sin(heading), -np.cos(heading), 0 * heading], -1)  # fwd x down... left in NED
+    gt[:, 11] = 0.1 * left  # hips: left hip to the left of the right hip
+    gt[:, 12] = -0.1 * left
+    pred = gt.copy()
+    pred[:, 9] += 0.03 * fwd  # the left wrist 30 mm forward of the truth, whichever way the person faces
+    pred[:, 0] += rng.normal(0, 0.01, (T, 3))  # the nose: noise only
+    out = joint_offsets_body_frame(pred, gt)
+    assert out["left_wrist"]["offset_fwd_left_up_mm"] == pytest.approx([30.0, 0.0, 0.0], abs=0.5)
+    assert out["left_wrist"]["varying_rms_mm"] < 0.5
+    assert out["nose"]["offset_mm"] < 3.0 and 12.0 < out["nose"]["varying_rms_mm"] < 22.0
