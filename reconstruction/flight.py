@@ -70,26 +70,33 @@ def undistort_keypoints(uv_px: np.ndarray, confidence: np.ndarray, t_frame_ns: n
     return uv_px
 
 
-def report_times_ns(t_measurement_ns: np.ndarray, t_sent_ns: np.ndarray, max_delay_s: float = 0.1) -> np.ndarray:
+def report_times_ns(t_measurement_ns: np.ndarray, t_sent_ns: np.ndarray, max_delay_s: float = 0.1,
+                    window_s: float = 1.0) -> np.ndarray:
     """Measurement times of reports stamped by another clock, made consistent with their send times.
 
     A report is sent at ``t_sent_ns`` (the sender's wall clock) and describes the moment ``t_measurement_ns``
     (e.g. the gimbal's boot-time stamp mapped to the wall clock by the agent, :class:`onboard.agent.gimbal.BootClock`).
     When that mapping slips -- the stamping clock runs slower than the wall clock, as the simulator's boot clock
     does when it falls behind real time on a loaded machine, by tens of seconds over a flight -- the reports look
-    seconds older than they are, and the gimbal angle taken at a frame is the one of seconds later. A report's
-    send delay beyond the smallest one seen (the transport's floor) by more than ``max_delay_s`` is taken as such a
-    slip and removed: its time becomes ``t_sent - floor - max_delay_s``; reports within it keep their stamp. Reports
-    without a send time (``t_sent <= 0``) keep their stamp. Shapes (N,) -> (N,) int64."""
+    seconds older than they are, and the gimbal angle taken at a frame is the one of seconds later. The send delay
+    beyond the smallest one seen (the transport's floor) is the slip plus the publication's own delay; its lower
+    envelope over the next ``window_s`` of sends leaves the slip alone (a single late publication does not move
+    a stamp). Where that exceeds ``max_delay_s`` it is removed beyond ``max_delay_s``; reports within it keep their
+    stamp, as do reports without a send time (``t_sent <= 0``). Shapes (N,) -> (N,) int64."""
     t_m = np.asarray(t_measurement_ns, dtype=np.int64)
     t_s = np.asarray(t_sent_ns, dtype=np.int64)
     ok = t_s > 0
     if not ok.any():
         return t_m.copy()
-    delay = t_s - t_m
-    floor = int(delay[ok].min())
-    excess = np.where(ok, delay - floor - int(max_delay_s * 1e9), 0)
-    return t_m + np.maximum(excess, 0)
+    idx = np.flatnonzero(ok)
+    order = idx[np.argsort(t_s[idx], kind="stable")]
+    ts, excess = t_s[order], t_s[order] - t_m[order]
+    excess = excess - excess.min()
+    hi = np.searchsorted(ts, ts + int(window_s * 1e9), side="right")
+    env = np.array([excess[i:h].min() for i, h in enumerate(hi)], dtype=np.int64)
+    out = t_m.copy()
+    out[order] += np.maximum(env - int(max_delay_s * 1e9), 0)
+    return out
 
 
 def _gimbal_track(msgs, max_delay_s: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

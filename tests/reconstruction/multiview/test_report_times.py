@@ -69,3 +69,10 @@ def test_reader_takes_the_pitch_at_the_frame_not_seconds_later(tmp_path):
     # recorded the -0.6 of the report sent at 2.0 s (stamped 1.33 s) would already be in force
     assert np.allclose(at[1600], T_world_cam_from_pose(p, np.eye(3), -0.3, 0.0, None), atol=1e-9)
     assert np.allclose(at[3000], T_world_cam_from_pose(p, np.eye(3), -0.6, 0.0, None), atol=1e-9)
+
+
+def test_a_single_late_publication_keeps_its_stamp():
+    t = T0 + np.arange(30) * 100 * MS
+    sent = t + 2 * MS
+    sent[10] += 600 * MS  # the agent was busy once
+    assert np.array_equal(report_times_ns(t, sent), t)
