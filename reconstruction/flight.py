@@ -43,7 +43,11 @@ from skycap.frames import T_world_cam_from_pose, intrinsics_matrix
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_capture", "read_drone_log", "recordings_summary", "report_times_ns"]
+__all__ = ["read_capture", "read_drone_log", "recordings_summary", "report_times_ns", "READER_VERSION"]
+
+#: bumped when the reader turns the same recordings into a different capture (a cached fit of it is then stale):
+#: 2 = the gimbal reports' clock slip is removed (:func:`report_times_ns`)
+READER_VERSION = 2
 
 
 def _yaw_only(R: np.ndarray) -> np.ndarray:
