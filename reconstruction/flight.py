@@ -12,7 +12,9 @@ drone:
   with diagonal position/attitude covariances -> camera pose uncertainty;
 * ``camera_info`` (:class:`CameraInfo`): intrinsics (timestamped) and the gimbal angles;
 * ``gimbal`` (:class:`GimbalAttitude`, when recorded): the gimbal's reported pitch and yaw, interpolated at
-  each pose time (yaw unwrapped; held at the ends) -- used instead of ``camera_info``'s angles;
+  each pose time (yaw unwrapped; held at the ends) -- used instead of ``camera_info``'s angles; a report stamped
+  long before it was sent (the gimbal clock's mapping to the wall clock slipped) is timed by its send time
+  (:func:`report_times_ns`);
 * ``keypoints2d`` (:class:`Keypoints2D`, a real detector) -- or, when a drone has none,
   ``sim/keypoints2d`` (the simulator's noisy projections). One detector per ``detector`` name; the
   person with the highest mean confidence in each message. With a ``plumb_bob`` lens in the
@@ -41,7 +43,11 @@ from skycap.frames import T_world_cam_from_pose, intrinsics_matrix
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_capture", "read_drone_log", "recordings_summary"]
+__all__ = ["read_capture", "read_drone_log", "recordings_summary", "report_times_ns", "READER_VERSION"]
+
+#: bumped when the reader turns the same recordings into a different capture (a cached fit of it is then stale):
+#: 2 = the gimbal reports' clock slip is removed (:func:`report_times_ns`)
+READER_VERSION = 2
 
 
 def _yaw_only(R: np.ndarray) -> np.ndarray:
@@ -68,14 +74,50 @@ def undistort_keypoints(uv_px: np.ndarray, confidence: np.ndarray, t_frame_ns: n
     return uv_px
 
 
-def _gimbal_track(msgs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(t_ns, pitch_rad, unwrapped yaw_rad) of the finite ``gimbal`` reports in time order; None without any."""
-    rows = sorted((m.header.t_measurement_ns, m.pitch_rad, m.yaw_rad) for m in msgs
-                  if np.isfinite(m.pitch_rad) and np.isfinite(m.yaw_rad))
-    if not rows:
+def report_times_ns(t_measurement_ns: np.ndarray, t_sent_ns: np.ndarray, max_delay_s: float = 0.1,
+                    window_s: float = 1.0) -> np.ndarray:
+    """Measurement times of reports stamped by another clock, made consistent with their send times.
+
+    A report is sent at ``t_sent_ns`` (the sender's wall clock) and describes the moment ``t_measurement_ns``
+    (e.g. the gimbal's boot-time stamp mapped to the wall clock by the agent, :class:`onboard.agent.gimbal.BootClock`).
+    When that mapping slips -- the stamping clock runs slower than the wall clock, as the simulator's boot clock
+    does when it falls behind real time on a loaded machine, by tens of seconds over a flight -- the reports look
+    seconds older than they are, and the gimbal angle taken at a frame is the one of seconds later. The send delay
+    beyond the smallest one seen (the transport's floor) is the slip plus the publication's own delay; its lower
+    envelope over the next ``window_s`` of sends leaves the slip alone (a single late publication does not move
+    a stamp). Where that exceeds ``max_delay_s`` it is removed beyond ``max_delay_s``; reports within it keep their
+    stamp, as do reports without a send time (``t_sent <= 0``). Shapes (N,) -> (N,) int64."""
+    t_m = np.asarray(t_measurement_ns, dtype=np.int64)
+    t_s = np.asarray(t_sent_ns, dtype=np.int64)
+    ok = t_s > 0
+    if not ok.any():
+        return t_m.copy()
+    idx = np.flatnonzero(ok)
+    order = idx[np.argsort(t_s[idx], kind="stable")]
+    ts, excess = t_s[order], t_s[order] - t_m[order]
+    excess = excess - excess.min()
+    hi = np.searchsorted(ts, ts + int(window_s * 1e9), side="right")
+    env = np.array([excess[i:h].min() for i, h in enumerate(hi)], dtype=np.int64)
+    out = t_m.copy()
+    out[order] += np.maximum(env - int(max_delay_s * 1e9), 0)
+    return out
+
+
+def _gimbal_track(msgs, max_delay_s: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t_ns, pitch_rad, unwrapped yaw_rad) of the finite ``gimbal`` reports in time order (their times made
+    consistent with their send times, :func:`report_times_ns`); None without any."""
+    msgs = [m for m in msgs if np.isfinite(m.pitch_rad) and np.isfinite(m.yaw_rad)]
+    if not msgs:
         return None
-    t, p, y = (np.array(c, dtype=float) for c in zip(*rows))
-    return t, p, np.unwrap(y)
+    t = report_times_ns(np.array([m.header.t_measurement_ns for m in msgs], dtype=np.int64),
+                        np.array([m.header.t_sent_ns for m in msgs], dtype=np.int64), max_delay_s)
+    slipped = float((t - np.array([m.header.t_measurement_ns for m in msgs])).max()) * 1e-9
+    if slipped > 0:
+        log.warning("gimbal reports stamped up to %.2f s before they were sent (the gimbal's clock slipped behind "
+                    "the wall clock): their times are taken from the send times", slipped)
+    rows = sorted(zip(t.tolist(), (m.pitch_rad for m in msgs), (m.yaw_rad for m in msgs)))
+    tt, p, y = (np.array(c, dtype=float) for c in zip(*rows))
+    return tt, p, np.unwrap(y)
 
 
 def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: bool = True,

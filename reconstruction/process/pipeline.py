@@ -39,7 +39,7 @@ import numpy as np
 
 from flightdata.folder import FlightFolder
 from reconstruction.capture import CameraCapture, Capture, CaptureError
-from reconstruction.flight import read_drone_log
+from reconstruction.flight import READER_VERSION, read_drone_log
 from reconstruction.monocular.reconstruct import run as run_monocular
 from reconstruction.multiview.fit import fit_capture
 from reconstruction.multiview.flight import output_grid
@@ -198,7 +198,7 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
         wcfg = cfg.windows
         windows = plan_windows(int(grid[0]), int(grid[-1]), wcfg.window_s, wcfg.overlap_s)
         inputs = kp_keys if source == "models" else {d: ident[d] for d in drones}
-        fit_key = make_key("fit", CACHE_VERSION, method, inputs, source, cfg.keypoints.fuse, cfg.keypoints.agree_fraction,
+        fit_key = make_key("fit", CACHE_VERSION, READER_VERSION, method, inputs, source, cfg.keypoints.fuse, cfg.keypoints.agree_fraction,
                            cfg.keypoints.min_confidence, cfg.multiview if method == "multiview" else cfg.monocular,
                            wcfg, sortie)
         results, cached_w, shapes, params = [], 0, [], None
