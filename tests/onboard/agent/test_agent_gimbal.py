@@ -11,6 +11,7 @@ import signal
 import time
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from onboard.agent.autopilot import MavsdkAutopilot
@@ -44,6 +45,21 @@ def test_attitude_message_and_boot_clock():
     assert c.to_wall_ns(1_200_000, 10_300_000_000) == 10_205_000_000  # a late arrival keeps the offset
     assert c.to_wall_ns(50_000, 20_000_000_000) == 20_000_000_000  # stamps went back (reboot): offset reset
     assert c.to_wall_ns(0, 123) == 123
+
+
+def test_boot_clock_follows_a_sender_clock_that_falls_behind():
+    """A simulator's clock that runs at 80 % of the wall clock (a loaded machine): each stamp is mapped within the
+    window's drift (1 s x 20 % = 0.2 s at most) plus the transport delay, not seconds off as with one fixed offset."""
+    rng = np.random.default_rng(0)
+    c = BootClock(window_s=1.0)
+    errs = []
+    for k in range(400):  # 40 s of reports at 10 Hz
+        wall_ns = 10**10 + k * 100_000_000
+        stamp_us = (k * 100_000_000 * 8 // 10) // 1000 + 1  # the sender's time, 0.8 x wall
+        arrival = wall_ns + int(rng.uniform(1e6, 20e6))
+        errs.append(c.to_wall_ns(stamp_us, arrival) - wall_ns)
+    errs = np.abs(errs[20:]) * 1e-9
+    assert errs.max() < 0.25, errs.max()  # one offset kept from the start would be 7.6 s off at the end
 
 
 def test_gimbal_watch_warns_once_when_the_command_is_not_reached():
