@@ -93,6 +93,7 @@ def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str,
     has_box = np.all(np.isfinite(box), axis=1)
     wanted = [i for c in todo for i in range(c * n, min((c + 1) * n, F)) if has_box[i]]
     pending: list[tuple[int, np.ndarray]] = []
+    tracks: list[dict] = [{} for _ in mods]  # per model: the video-mode region track of this camera
     chunk_of = lambda i: i // n  # noqa: E731
     remaining = {c: int(np.sum(has_box[c * n : min((c + 1) * n, F)])) for c in todo}
 
@@ -102,7 +103,11 @@ def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str,
         idx = [i for i, _ in pending]
         imgs = [im for _, im in pending]
         for m, model in enumerate(mods):
-            out[idx, m] = model.predict(imgs, box[idx], cfg.batch_size)
+            if cfg.track_rois and getattr(model, "predict_sequence", None) is not None:
+                out[idx, m] = model.predict(imgs, box[idx], cfg.batch_size, frame_ids=idx, track=tracks[m])
+                stats["pose_detector_runs"] = stats.get("pose_detector_runs", 0) + tracks[m].pop("detector_runs", 0)
+            else:
+                out[idx, m] = model.predict(imgs, box[idx], cfg.batch_size)
         stats["frames_computed"] = stats.get("frames_computed", 0) + len(idx)
         stats["model_calls"] = stats.get("model_calls", 0) + len(mods)
         pending.clear()

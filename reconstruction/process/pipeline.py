@@ -334,42 +334,81 @@ def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, c
 
 
 def _keypoints_step(logs, drones, skipped, boxes, cfg, step_dir, progress, cancel, steps, stats):
+    """The keypoint models on each drone's boxed frames, ``cfg.keypoints.workers`` drones at once (threads: the
+    onnxruntime runs and the image decoding release the GIL; each thread opens its own models)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     t0 = time.perf_counter()
     sp = StepProgress("keypoints", progress, cancel)
     sp.check_cancel()
     kc = cfg.keypoints
-    opened: list = []
+    local = threading.local()
+    lock = threading.Lock()
 
     def models():
-        if not opened:
-            opened.extend(load_models(kc))
-        return opened
+        if getattr(local, "models", None) is None:
+            local.models = load_models(kc)
+        return local.models
 
-    out, keys, cached = {}, {}, 0
     n = len(drones)
-    for i, d in enumerate(list(drones)):
-        key = make_key("keypoints", CACHE_VERSION, str(boxes[d]["key"]), kc.models, kc.crop_scale, kc.chunk_frames)
+    frac = {d: 0.0 for d in drones}
+
+    def report(d, done, total, msg):
+        with lock:
+            frac[d] = done / max(total, 1)
+            f = sum(frac.values()) / n
+        sp(f, 1.0, msg)
+
+    def one(d):
+        """(d, kp, key, cached) or (d, exception, key, None) for an unreadable recording."""
+        key = make_key("keypoints", CACHE_VERSION, str(boxes[d]["key"]), kc.models, kc.crop_scale, kc.chunk_frames,
+                       kc.track_rois)
         final = step_dir("keypoints") / f"{d}-{key}.npz"
         z = read_npz(final)
         if z is not None and z["kp"].shape[:2] == (len(boxes[d]["t_ns"]), len(kc.models)):
-            cached += 1
-            kp = z["kp"]
-            sp(i + 1, n, f"{d}: cached")
-        else:
-            chunk_dir = step_dir("keypoints") / f"{d}-{key}.chunks"
-            try:
-                kp = compute_keypoints(logs[d], d, boxes[d], kc, chunk_dir, models,
-                                       lambda done, total, msg, i=i: sp((i + done / max(total, 1)) / n, 1.0, msg), stats)
-            except Exception as e:
-                if not _unreadable(e):
-                    raise
-                _skip(d, e, drones, skipped, "keypoints")
-                continue
-            atomic_write_npz(final, kp=kp)
-            remove_tree(chunk_dir)
+            report(d, 1, 1, f"{d}: cached")
+            return d, z["kp"], key, True
+        chunk_dir = step_dir("keypoints") / f"{d}-{key}.chunks"
+        st: dict = {}
+        try:
+            kp = compute_keypoints(logs[d], d, boxes[d], kc, chunk_dir, models,
+                                   lambda done, total, msg: report(d, done, total, msg), st)
+        except Exception as e:
+            if not _unreadable(e):
+                raise
+            return d, e, key, None
+        finally:
+            with lock:
+                for k, v in st.items():
+                    stats[k] = stats.get(k, 0) + v
+        atomic_write_npz(final, kp=kp)
+        remove_tree(chunk_dir)
+        return d, kp, key, False
+
+    workers = max(1, min(kc.workers, n))
+    if workers == 1:
+        results = [one(d) for d in list(drones)]
+    else:
+        with ThreadPoolExecutor(workers, thread_name_prefix="keypoints") as pool:
+            futures = [pool.submit(one, d) for d in list(drones)]
+            results, first_error = [], None
+            for f in futures:  # every drone's thread ends (a cancel stops them all) before an error is raised
+                try:
+                    results.append(f.result())
+                except BaseException as e:
+                    first_error = first_error or e
+            if first_error is not None:
+                raise first_error
+    out, keys, cached = {}, {}, 0
+    for d, kp, key, hit in results:
+        if hit is None:
+            _skip(d, kp, drones, skipped, "keypoints")
+            continue
+        cached += int(hit)
         out[d], keys[d] = kp, key
     steps["keypoints"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": cached == n and n > 0,
-                          "models": list(kc.models), "threads": kc.threads}
+                          "models": list(kc.models), "threads": kc.threads, "workers": workers,
+                          "track_rois": kc.track_rois}
     return out, keys
 
 
