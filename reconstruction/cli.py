@@ -61,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="models (default): the keypoint models on the recorded images; sim: the simulator's recorded "
                          "noisy true keypoints (evaluation)")
     rc.add_argument("--models", default=None, help="comma-separated keypoint models (default movenet_lightning,blazepose_full)")
-    rc.add_argument("--threads", type=int, default=None, help="onnxruntime threads per keypoint model (default 2)")
+    rc.add_argument("--threads", type=int, default=None, help="onnxruntime threads per keypoint model (default 1; keypoints.workers drones run at once, default 2)")
     rc.add_argument("--window-s", type=float, default=None, help="fit window length, s (default 60)")
     rc.add_argument("--out", type=Path, default=None, help="output folder (default: the method's folder of the flight)")
     rc.add_argument("--no-cache", action="store_true", help="neither read nor write FLIGHT_DIR/processing/")

@@ -258,11 +258,66 @@ class BlazePose(KeypointModel):
                 rois.append(roi_transform(kp_img[0], side, self.input_px, direction) if side > 4 else None)
         return rois
 
-    def predict(self, images, boxes_xywh, batch_size: int = 16) -> np.ndarray:
+    def predict(self, images, boxes_xywh, batch_size: int = 16, *, frame_ids=None, track: dict | None = None) -> np.ndarray:
+        """As :meth:`KeypointModel.predict`. With ``frame_ids`` (the frames' positions in their video) and a
+        ``track`` dict (kept by the caller, one per camera, empty at the start): MediaPipe's video mode
+        (:meth:`predict_sequence`), the pose detector only where the track is lost."""
+        if track is not None and frame_ids is not None:
+            return self.predict_sequence(images, boxes_xywh, frame_ids, track)
         boxes = np.asarray(boxes_xywh, np.float64).reshape(-1, 4)
         rois = self.detect_rois(images, boxes, batch_size)
         mats = [A if A is not None else box_transform(b, self.input_px, self.crop_scale) for A, b in zip(rois, boxes)]
         return self._predict_rois(images, mats, batch_size)
+
+    def roi_from_landmarks(self, ld_img: np.ndarray) -> np.ndarray | None:
+        """MediaPipe's landmark region for the next frame from this frame's auxiliary landmarks (ld 33: hip
+        centre, 34: body-circle point, image pixels), as :meth:`detect_rois` makes it from the detector's two
+        keypoints (side 2 x 1.25 x their distance; upright or along the hip->point axis); None when degenerate."""
+        up = ld_img[1] - ld_img[0]
+        side = 2.0 * 1.25 * float(np.hypot(*up))
+        if not (side > 4 and np.all(np.isfinite(ld_img))):
+            return None
+        direction = (0.0, -1.0) if self.upright else up
+        return roi_transform(ld_img[0], side, self.input_px, direction)
+
+    def predict_sequence(self, images, boxes_xywh, frame_ids, state: dict | None = None) -> np.ndarray:
+        """:meth:`predict` on consecutive video frames, MediaPipe's video mode: the landmark region of a frame is
+        made from the previous frame's auxiliary landmarks (:meth:`roi_from_landmarks`) when that frame is the one
+        just before (``frame_ids`` consecutive), its pose flag was >= ``min_detection_score`` and the tracked hip
+        centre lies inside this frame's person box (grown by half its size); otherwise the pose detector runs, as
+        in :meth:`predict`. ``state`` (a dict kept by the caller) carries the track across calls (one per camera).
+        Returns (P, 17, 3) as :meth:`predict`; ``state["detector_runs"]`` counts the detector calls."""
+        state = state if state is not None else {}
+        boxes = np.asarray(boxes_xywh, np.float64).reshape(-1, 4)
+        out = np.zeros((len(boxes), 17, 3))
+        S = self.input_px
+        for i, (img, b, fid) in enumerate(zip(images, boxes, frame_ids)):
+            A = None
+            prev = state.get("roi")
+            if prev is not None and state.get("frame_id") == int(fid) - 1:
+                cx, cy = state["hip_px"]
+                x, y, w, h = b
+                if x - w / 2 <= cx <= x + 1.5 * w and y - h / 2 <= cy <= y + 1.5 * h:
+                    A = prev
+            if A is None:
+                state["detector_runs"] = state.get("detector_runs", 0) + 1
+                A = self.detect_rois([img], b[None], 1)[0]
+                if A is None:
+                    A = box_transform(b, S, self.crop_scale)
+            crop = warp_crop(img, A, S)
+            x = crop[None].astype(np.float32) * (1.0 / 255.0)
+            res = dict(zip(self.output_names, self.session.run(self.output_names, {self.input_name: x})))
+            ld = res["ld_3d"].reshape(39, 5)
+            flag = float(np.clip(res["output_poseflag"].reshape(-1)[0], 0.0, 1.0))
+            kp = np.empty((17, 3))
+            kp[:, :2] = crop_to_image(ld[BLAZEPOSE_TO_COCO17, :2] - 0.5, A)
+            vis = np.clip(ld[BLAZEPOSE_TO_COCO17, 3:5].astype(np.float64), -50, 50)
+            kp[:, 2] = _sigmoid(vis[:, 0]) * _sigmoid(vis[:, 1]) * flag
+            out[i] = kp
+            aux = crop_to_image(ld[33:35, :2] - 0.5, A)
+            nxt = self.roi_from_landmarks(aux) if flag >= self.min_detection_score else None
+            state.update(roi=nxt, frame_id=int(fid), hip_px=aux[0])
+        return out
 
 
 def _open(name: str, threads: int):

@@ -41,11 +41,17 @@ class KeypointsConfig:
     #: MoveNet Lightning + BlazePose Full: measured on a 3-drone demo flight (bench note in reconstruction/process/
     #: README.md) as accurate as Thunder + BlazePose (MPJPE 94.7 vs 104.5 mm) at 0.6x its keypoint time
     models: list[str] = dataclasses.field(default_factory=lambda: ["movenet_lightning", "blazepose_full"])
-    #: onnxruntime intra-op threads per model: 2 uses both cores of a 2-core laptop (keypoints 75 -> 44 s there)
-    threads: int = 2
+    #: onnxruntime intra-op threads per model (and per worker, see ``workers``)
+    threads: int = 1
     crop_scale: float = 1.25
     batch_size: int = 16
     chunk_frames: int = 64
+    #: BlazePose in MediaPipe's video mode: a frame's landmark region from the previous frame's landmarks, the pose
+    #: detector only on the first frame of a run and where the track is lost (False: the detector on every frame)
+    track_rois: bool = True
+    #: drones whose keypoints are computed at once (threads, each with its own models at ``threads`` onnxruntime
+    #: threads): 2 x 1 thread keeps both cores of a 2-core machine busy better than 1 x 2 threads
+    workers: int = 2
     #: fuse the models into one detector per camera (False: each model is a detector of its own in the fit)
     fuse: bool = True
     #: two models agree on a joint when their points lie within this fraction of the box's longer side
@@ -101,8 +107,8 @@ class ProcessConfig:
         bad = [m for m in k.models if m not in KEYPOINT_MODELS]
         if k.source == "models" and (not k.models or bad):
             raise ProcessError(f"keypoints.models={k.models}: name at least one of {', '.join(KEYPOINT_MODELS)}")
-        if k.threads < 1 or k.batch_size < 1 or k.chunk_frames < 1:
-            raise ProcessError("keypoints.threads, batch_size and chunk_frames must be >= 1")
+        if k.threads < 1 or k.workers < 1 or k.batch_size < 1 or k.chunk_frames < 1:
+            raise ProcessError("keypoints.threads, workers, batch_size and chunk_frames must be >= 1")
         if not (w.window_s > 0 and 0 <= w.overlap_s < w.window_s and w.margin_s >= 0):
             raise ProcessError(f"windows: window_s={w.window_s} must be > 0 and 0 <= overlap_s={w.overlap_s} < "
                                "window_s, margin_s >= 0")

@@ -69,10 +69,12 @@ def load_models(cfg: KeypointsConfig) -> list:
 
 def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str, np.ndarray], cfg: KeypointsConfig,
                       chunk_dir: Path, models: Callable[[], list],
-                      tick: Callable[[float, float, str], None], stats: dict) -> np.ndarray:
+                      tick: Callable[[float, float, str], None], stats: dict,
+                      only_chunks: Sequence[int] | None = None) -> np.ndarray:
     """The models' keypoints (F, M, 17, 3) of one drone's frames with a box, chunk by chunk (see the module doc).
     ``models()`` opens the models when a chunk needs computing; ``tick(done, total, message)`` is called after each
-    batch (and checks the cancel event); ``stats["frames_computed"]`` counts the frames run here."""
+    batch (and checks the cancel event); ``stats["frames_computed"]`` counts the frames run here. ``only_chunks``:
+    compute (and write) only these chunks -- a part of the drone's frames for one worker; the others stay NaN."""
     box = boxes["box_xywh"]
     F, M, n = len(box), len(cfg.models), cfg.chunk_frames
     n_chunks = max(1, -(-F // n))
@@ -83,16 +85,19 @@ def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str,
         z = read_npz(chunk_dir / f"chunk_{c:05d}.npz")
         if z is not None and z["kp"].shape == (min(n, F - c * n), M, 17, 3):
             out[c * n : (c + 1) * n] = z["kp"]
-        else:
+        elif only_chunks is None or c in only_chunks:
             todo.append(c)
-    done_frames = F - sum(min(n, F - c * n) for c in todo)
-    tick(done_frames, F, f"{drone_id}: {done_frames}/{F} frames from the cache" if done_frames else f"{drone_id}: starting")
+    size = lambda c: min(n, F - c * n)  # noqa: E731
+    total = F if only_chunks is None else sum(size(c) for c in set(only_chunks) if 0 <= c < n_chunks)  # progress
+    done_frames = total - sum(size(c) for c in todo)
+    tick(done_frames, total, f"{drone_id}: {done_frames}/{total} frames from the cache" if done_frames else f"{drone_id}: starting")
     if not todo:
         return out
     mods = models()
     has_box = np.all(np.isfinite(box), axis=1)
     wanted = [i for c in todo for i in range(c * n, min((c + 1) * n, F)) if has_box[i]]
     pending: list[tuple[int, np.ndarray]] = []
+    tracks: list[dict] = [{} for _ in mods]  # per model: the video-mode region track of this camera
     chunk_of = lambda i: i // n  # noqa: E731
     remaining = {c: int(np.sum(has_box[c * n : min((c + 1) * n, F)])) for c in todo}
 
@@ -102,7 +107,11 @@ def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str,
         idx = [i for i, _ in pending]
         imgs = [im for _, im in pending]
         for m, model in enumerate(mods):
-            out[idx, m] = model.predict(imgs, box[idx], cfg.batch_size)
+            if cfg.track_rois and getattr(model, "predict_sequence", None) is not None:
+                out[idx, m] = model.predict(imgs, box[idx], cfg.batch_size, frame_ids=idx, track=tracks[m])
+                stats["pose_detector_runs"] = stats.get("pose_detector_runs", 0) + tracks[m].pop("detector_runs", 0)
+            else:
+                out[idx, m] = model.predict(imgs, box[idx], cfg.batch_size)
         stats["frames_computed"] = stats.get("frames_computed", 0) + len(idx)
         stats["model_calls"] = stats.get("model_calls", 0) + len(mods)
         pending.clear()
@@ -124,10 +133,10 @@ def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str,
         if len(pending) >= cfg.batch_size or remaining[chunk_of(i)] == 0:
             flush()
             finish_ready()
-            tick(done_frames, F, f"{drone_id}: {done_frames}/{F} frames")
+            tick(done_frames, total, f"{drone_id}: {done_frames}/{total} frames")
     flush()
     finish_ready()
     if todo:  # frames the recording no longer yields (cannot happen with an unchanged file)
         raise RuntimeError(f"{drone_id}: chunks {todo} incomplete: the recording yielded fewer frames than its table")
-    tick(F, F, f"{drone_id}: {F} frames")
+    tick(total, total, f"{drone_id}: {total} frames")
     return out

@@ -334,42 +334,111 @@ def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, c
 
 
 def _keypoints_step(logs, drones, skipped, boxes, cfg, step_dir, progress, cancel, steps, stats):
+    """The keypoint models on each drone's boxed frames, in ``cfg.keypoints.workers`` threads (the onnxruntime runs
+    and the image decoding release the GIL; each thread opens its own models) over parts of the drones' chunks."""
+    from concurrent.futures import ThreadPoolExecutor
+
     t0 = time.perf_counter()
     sp = StepProgress("keypoints", progress, cancel)
     sp.check_cancel()
     kc = cfg.keypoints
-    opened: list = []
+    local = threading.local()
+    lock = threading.Lock()
 
     def models():
-        if not opened:
-            opened.extend(load_models(kc))
-        return opened
+        if getattr(local, "models", None) is None:
+            local.models = load_models(kc)
+        return local.models
 
-    out, keys, cached = {}, {}, 0
     n = len(drones)
-    for i, d in enumerate(list(drones)):
-        key = make_key("keypoints", CACHE_VERSION, str(boxes[d]["key"]), kc.models, kc.crop_scale, kc.chunk_frames)
-        final = step_dir("keypoints") / f"{d}-{key}.npz"
-        z = read_npz(final)
+
+    def key_of(d):
+        return make_key("keypoints", CACHE_VERSION, str(boxes[d]["key"]), kc.models, kc.crop_scale, kc.chunk_frames,
+                        kc.track_rois)
+
+    def part(d, chunks, task):
+        """Compute (and write) one part of a drone's chunks (all of them with ``chunks`` None) -> keypoints."""
+        st: dict = {}
+        try:
+            return compute_keypoints(logs[d], d, boxes[d], kc, step_dir("keypoints") / f"{d}-{key_of(d)}.chunks",
+                                     models, lambda done, total, msg: report(task, done, total, msg), st, chunks)
+        finally:
+            with lock:
+                for k, v in st.items():
+                    stats[k] = stats.get(k, 0) + v
+
+    results: dict[str, tuple] = {}  # drone -> (keypoints or the unreadable recording's error, cached)
+    todo = []
+    for d in drones:
+        z = read_npz(step_dir("keypoints") / f"{d}-{key_of(d)}.npz")
         if z is not None and z["kp"].shape[:2] == (len(boxes[d]["t_ns"]), len(kc.models)):
-            cached += 1
-            kp = z["kp"]
-            sp(i + 1, n, f"{d}: cached")
+            results[d] = (z["kp"], True)
         else:
-            chunk_dir = step_dir("keypoints") / f"{d}-{key}.chunks"
-            try:
-                kp = compute_keypoints(logs[d], d, boxes[d], kc, chunk_dir, models,
-                                       lambda done, total, msg, i=i: sp((i + done / max(total, 1)) / n, 1.0, msg), stats)
-            except Exception as e:
-                if not _unreadable(e):
-                    raise
-                _skip(d, e, drones, skipped, "keypoints")
-                continue
-            atomic_write_npz(final, kp=kp)
-            remove_tree(chunk_dir)
-        out[d], keys[d] = kp, key
+            todo.append(d)
+    # the work: each drone's chunks in ``workers`` contiguous parts (3 drones on 2 workers keep both busy to the end;
+    # a part starts its BlazePose track with one detector run), then each drone's chunks (all cached) consolidated
+    workers = max(1, min(kc.workers, sum(-(-len(boxes[d]["t_ns"]) // kc.chunk_frames) for d in todo) or 1))
+    tasks = []
+    for d in todo:
+        n_chunks = max(1, -(-len(boxes[d]["t_ns"]) // kc.chunk_frames))
+        k = min(workers, n_chunks)
+        bounds = np.linspace(0, n_chunks, k + 1).round().astype(int)
+        tasks += [(d, list(range(a, b))) for a, b in zip(bounds[:-1], bounds[1:])] if k > 1 else [(d, None)]
+    frac = {t: 0.0 for t in range(len(tasks))}
+    frac.update({("cached", d): 1.0 for d in results})
+
+    def report(task, done, total, msg):
+        with lock:
+            frac[task] = done / max(total, 1)
+            f = sum(frac.values()) / max(len(frac), 1)
+        sp(f, 1.0, msg)
+
+    def run(t):
+        d, chunks = tasks[t]
+        try:
+            part(d, chunks, t)
+        except Exception as e:
+            if not _unreadable(e):
+                raise
+            return d, e
+        return d, None
+
+    errors: dict[str, BaseException] = {}
+    if workers == 1:
+        outs = [run(t) for t in range(len(tasks))]
+    else:
+        with ThreadPoolExecutor(workers, thread_name_prefix="keypoints") as pool:
+            futures = [pool.submit(run, t) for t in range(len(tasks))]
+            outs, first_error = [], None
+            for f in futures:  # every thread ends (a cancel stops them all) before an error is raised
+                try:
+                    outs.append(f.result())
+                except BaseException as e:
+                    first_error = first_error or e
+            if first_error is not None:
+                raise first_error
+    for d, e in outs:
+        if e is not None:
+            errors.setdefault(d, e)
+    for d in todo:
+        if d in errors:
+            results[d] = (errors[d], None)
+            continue
+        kp = part(d, None, ("cached", d))  # every chunk written: read back, nothing computed
+        atomic_write_npz(step_dir("keypoints") / f"{d}-{key_of(d)}.npz", kp=kp)
+        remove_tree(step_dir("keypoints") / f"{d}-{key_of(d)}.chunks")
+        results[d] = (kp, False)
+    out, keys, cached = {}, {}, 0
+    for d in list(drones):
+        kp, hit = results[d]
+        if hit is None:
+            _skip(d, kp, drones, skipped, "keypoints")
+            continue
+        cached += int(hit)
+        out[d], keys[d] = kp, key_of(d)
     steps["keypoints"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": cached == n and n > 0,
-                          "models": list(kc.models), "threads": kc.threads}
+                          "models": list(kc.models), "threads": kc.threads, "workers": workers,
+                          "track_rois": kc.track_rois}
     return out, keys
 
 

@@ -211,15 +211,31 @@ def _interp(tq: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 class _Model:
-    """Transition (F, Q) for a step of dt seconds; F is block structured, built densely (n <= 30)."""
+    """Transition (F, Q) for a step of dt seconds; F is block structured, built densely (n <= 30).
+
+    Memoised per ``dt_s``: the grid's steps repeat a handful of values and every pass of the smoother (forward,
+    backward, each reweighting) asks for them again; the cached matrices are read-only (the passes never write
+    them), so the results are bit-identical to building them each time."""
 
     def __init__(self, cfg: SmootherConfig, offset_sigma_m: np.ndarray):
         self.cfg = cfg
         self.sig_b = offset_sigma_m  # (D, 3)
         self.D = offset_sigma_m.shape[0]
         self.n = 6 + 3 * self.D
+        self._cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        dt_s = float(dt_s)
+        hit = self._cache.get(dt_s)
+        if hit is None:
+            hit = self._build(dt_s)
+            for m in hit:
+                m.flags.writeable = False
+            if len(self._cache) < 4096:  # bounded: irregular steps (dropped frames) must not grow it forever
+                self._cache[dt_s] = hit
+        return hit
+
+    def _build(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         c = self.cfg
         n = self.n
         F = np.eye(n)
