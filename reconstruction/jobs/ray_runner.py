@@ -84,10 +84,14 @@ class RayRunner(Runner):
 
     def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "process") -> Job:
         """Submit ``processor(flight_dir, config, progress, cancel)`` as a Ray task; it runs when the cluster has
-        ``num_cpus_per_job`` CPUs free (queued until then)."""
+        ``num_cpus_per_job`` CPUs free (queued until then). A ``flight_dir`` that is not a folder here is refused
+        with :class:`JobError` (the local runner's check)."""
         ray = _ray()
         spec = processor_spec(processor)
         flight_dir = Path(flight_dir).resolve()
+        if not flight_dir.is_dir():  # as the local runner: refused here, not as a failed task on a worker
+            raise JobError(f"flight folder {flight_dir} does not exist: pass the folder a recording or the demo wrote "
+                           "(on a cluster of several machines, a path on storage every node sees)")
         job = Job(flight_dir, spec, config, self.name)
         task = _job_task().options(num_cpus=self.num_cpus_per_job, num_returns="streaming", max_retries=0)
         gen = task.remote(spec, str(flight_dir), config, self.unit_cpus)
