@@ -7,7 +7,8 @@
 For each flight: ``python -m apps.cli process FLIGHT_DIR [PROCESS ARGS]`` (the default pipeline: the real keypoint
 models; ``--keypoints sim``, ``--no-cache`` and ``--set ...`` go after ``--``) in a child process whose resident
 memory is sampled every ``--sample-s`` (psutil): ``peak_rss_mb`` is the largest sum over the process and all its
-descendants (worker processes included), ``peak_rss_main_mb`` that of the process alone. A flight processed earlier
+descendants (worker processes included), ``peak_rss_main_mb`` that of the process alone; every ~5 s a line ``seconds tree_mb main_mb peak_tree_mb`` goes
+to ``FLIGHT_DIR/bench_process_long.<time>.rss`` (the processing's log beside it). A flight processed earlier
 resumes from its ``processing/`` cache (what is then measured is the rest); ``--no-cache`` after ``--`` runs all.
 
 Then, from the motion it wrote (``summary.json`` of its method's folder: the output files and the fit windows):
@@ -41,7 +42,7 @@ from bench._machine import describe_machine  # noqa: E402
 class TreeRss:
     """Samples the resident memory of a process and all its descendants in a thread."""
 
-    def __init__(self, pid: int, every_s: float = 0.2):
+    def __init__(self, pid: int, every_s: float = 0.2, log_path: Path | None = None):
         import psutil
 
         self._psutil = psutil
@@ -51,6 +52,8 @@ class TreeRss:
         self.peak_main = 0
         self.peak_children = 0
         self.samples = 0
+        self.log_path = log_path
+        self._t0 = time.perf_counter()
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
         self._t.start()
@@ -73,6 +76,10 @@ class TreeRss:
             self.peak_tree = max(self.peak_tree, total)
             self.peak_children = max(self.peak_children, len(kids))
             self.samples += 1
+            if self.log_path is not None and self.samples % max(1, int(round(5.0 / self.every_s))) == 1:
+                with open(self.log_path, "a") as f:  # every ~5 s: the memory over time (a run cut short still tells)
+                    f.write(f"{time.perf_counter() - self._t0:.1f} {total / 2**20:.1f} {main / 2**20:.1f} "
+                            f"{self.peak_tree / 2**20:.1f}\n")
             self._stop.wait(self.every_s)
 
     def stop(self) -> None:
@@ -85,7 +92,7 @@ def run_process(flight: Path, extra: list[str], sample_s: float, log_path: Path)
     t0 = time.perf_counter()
     with open(log_path, "w") as logf:
         p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, cwd=Path(__file__).resolve().parents[1])
-        mon = TreeRss(p.pid, sample_s)
+        mon = TreeRss(p.pid, sample_s, log_path.with_suffix(".rss"))
         rc = p.wait()
         mon.stop()
     wall = time.perf_counter() - t0
