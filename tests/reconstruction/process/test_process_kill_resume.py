@@ -30,7 +30,7 @@ def _start(flight: Path, cfg_path: Path) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
 
 
-def _kill_when(proc: subprocess.Popen, ready, timeout_s: float = 120.0) -> None:
+def _kill_when(proc: subprocess.Popen, ready, timeout_s: float = 600.0) -> None:
     """SIGKILL ``proc`` as soon as ``ready()`` is true (polled every 10 ms)."""
     t_end = time.monotonic() + timeout_s
     while not ready():
@@ -54,7 +54,9 @@ def killed_and_resumed(processed, tmp_path_factory):
     ``skycap process`` killed in the keypoints, run again and killed in the fit, run again to the end."""
     src = processed["flight"]
     span_s = float((processed["runs"][1][0].t_ns[-1] - processed["runs"][1][0].t_ns[0]) * 1e-9)
-    cfg = make_config(**{"windows.window_s": span_s / 3, "windows.overlap_s": span_s / 10, "export.extra": []})
+    # two fit windows (the second kill falls between them), a short fit: the reference below fits them again
+    cfg = make_config(**{"windows.window_s": span_s * 0.6, "windows.overlap_s": span_s / 8, "export.extra": [],
+                         "multiview.fit.iters": 15})
     base = tmp_path_factory.mktemp("kill_resume")
     cfg_path = base / "process.toml"
     from skycap.config import save_config
@@ -115,8 +117,8 @@ def test_a_killed_process_resumes_without_recomputing_and_equals_an_uninterrupte
         np.testing.assert_allclose(np.load(f)["kp"], np.load(ref)["kp"], atol=1e-3)
     # run 3 ran no keypoint model (all from the cache) and the fit windows written before the second kill untouched
     assert s["stats"].get("frames_computed", 0) == 0 and s["steps"]["keypoints"]["cached"], s["stats"]
-    assert r["windows_before"] and s["steps"]["fit"]["windows"] >= 3
-    assert s["steps"]["fit"]["windows_cached"] == len(r["windows_before"]), (s["steps"]["fit"], r["windows_before"])
+    assert r["windows_before"] and s["steps"]["fit"]["windows"] == 2
+    assert 1 <= s["steps"]["fit"]["windows_cached"] == len(r["windows_before"]) < 2, (s["steps"]["fit"], r["windows_before"])
     after = _files(flight / "processing" / "fit", "*-w*.npz")
     assert all(after[k] == v for k, v in r["windows_before"].items()), "a finished window was written again"
     assert len(after) == s["steps"]["fit"]["windows"]
