@@ -86,7 +86,7 @@ def ray_head():
                 time.sleep(0.2)
         yield f"127.0.0.1:{port}"
     finally:
-        # the head's processes (ray start, GCS, raylet, workers) are its process group: SIGTERM, up to 15 s to end,
+        # the head's processes (ray start, GCS, raylet, workers) are its process group: SIGTERM, up to 5 s to end,
         # then SIGKILL what is left
         def group() -> list[str]:
             out = subprocess.run(["ps", "-o", "pid=,stat=", "-g", str(head.pid)], capture_output=True, text=True).stdout
@@ -96,7 +96,7 @@ def ray_head():
             os.killpg(head.pid, signal.SIGTERM)
         except ProcessLookupError:
             pass
-        t_end = time.monotonic() + 15
+        t_end = time.monotonic() + 5
         while group() and time.monotonic() < t_end:
             time.sleep(0.2)
         try:
