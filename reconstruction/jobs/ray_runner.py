@@ -73,6 +73,12 @@ class RayRunner(Runner):
             try:
                 ray.init(address=address or "auto", runtime_env=runtime_env, **init_kwargs)
             except ConnectionError as e:
+                if _auth_refused(e):
+                    raise JobError(
+                        f"the Ray cluster at {address!r} refused this connection: it requires token authentication "
+                        "(Ray >= 2.52 turns it on for `ray start`) and Ray never sends a token to an address given "
+                        "explicitly unless told to: set RAY_AUTH_MODE=token and the cluster's token (RAY_AUTH_TOKEN, "
+                        "RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token; `ray get-auth-token` on the head prints it)") from e
                 raise JobError(f"no Ray cluster at {address or 'auto'!r} ({e}); start one (ray start --head) and pass its "
                                f"address HOST:PORT, or use the local runner") from e
             self._owns = True
@@ -84,10 +90,14 @@ class RayRunner(Runner):
 
     def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "process") -> Job:
         """Submit ``processor(flight_dir, config, progress, cancel)`` as a Ray task; it runs when the cluster has
-        ``num_cpus_per_job`` CPUs free (queued until then)."""
+        ``num_cpus_per_job`` CPUs free (queued until then). A ``flight_dir`` that is not a folder here is refused
+        with :class:`JobError` (the local runner's check)."""
         ray = _ray()
         spec = processor_spec(processor)
         flight_dir = Path(flight_dir).resolve()
+        if not flight_dir.is_dir():  # as the local runner: refused here, not as a failed task on a worker
+            raise JobError(f"flight folder {flight_dir} does not exist: pass the folder a recording or the demo wrote "
+                           "(on a cluster of several machines, a path on storage every node sees)")
         job = Job(flight_dir, spec, config, self.name)
         task = _job_task().options(num_cpus=self.num_cpus_per_job, num_returns="streaming", max_retries=0)
         gen = task.remote(spec, str(flight_dir), config, self.unit_cpus)
@@ -126,6 +136,16 @@ class RayRunner(Runner):
         except BaseException as e:  # noqa: BLE001 - the job must end whatever happened here
             log.exception("job %s: Ray runner error", job.id)
             job._finish(JobStatus.FAILED, error=JobFailed(f"Ray runner error: {type(e).__name__}: {e}"))
+
+
+def _auth_refused(e: BaseException) -> bool:
+    """Whether a failed ``ray.init`` was the cluster refusing a missing or wrong authentication token."""
+    seen = 0
+    while e is not None and seen < 10:
+        if type(e).__name__ == "AuthenticationError" or "InvalidAuthToken" in str(e):
+            return True
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return False
 
 
 class RayUnits:

@@ -4,11 +4,13 @@
 Every entry is named by a key: a short hash of what it was computed from (the recordings' identity, the earlier
 steps' keys, the step's settings), so a changed setting or recording is recomputed and an unchanged one is read
 back. Writes are atomic (a temporary file in the same folder, then ``os.replace``): a crash or a cancel leaves
-either the whole entry or none. The recordings themselves are only read.
+either the whole entry or none; the temporary file a killed writer leaves (``.<name>.<pid>.tmp``, its process gone)
+is removed when that entry is written next. The recordings themselves are only read.
 """
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import io
 import json
@@ -19,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "file_identity", "make_key", "read_npz"]
+__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_npz", "file_identity", "make_key", "read_npz",
+           "remove_stale_temporaries"]
 
 
 def make_key(*parts: Any) -> str:
@@ -60,6 +63,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` whole or not at all (temporary file beside it, fsync, rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
@@ -71,6 +75,34 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Remove the temporary files of ``path`` left by a writer that was killed (SIGKILL, power loss) before its
+    rename: ``.<name>.<pid>.tmp`` whose process is gone. A live writer's (another job on the same flight) stays.
+    Returns what was removed."""
+    path = Path(path)
+    removed = []
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        pid = tmp.name[len(path.name) + 2 : -4]
+        if not pid.isdigit() or (int(pid) != os.getpid() and _alive(int(pid))):
+            continue
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except FileNotFoundError:
+            pass
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def atomic_write_npz(path: str | Path, **arrays: Any) -> Path:

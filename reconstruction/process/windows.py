@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plan_windows", "stitch", "window_weight"]
+__all__ = ["motion_steps", "plan_windows", "seam_figures", "seam_mask", "stitch", "window_weight"]
 
 
 def plan_windows(t0_ns: int, t1_ns: int, window_s: float, overlap_s: float) -> list[tuple[int, int]]:
@@ -77,3 +77,44 @@ def stitch(grid_ns: np.ndarray, windows: list[tuple[int, int]], results: list[tu
         wsum[sel] += w[sel]
     keep = wsum > 1e-9
     return grid[keep], acc[keep] / wsum[keep, None, None]
+
+
+def seam_mask(t_ns: np.ndarray, windows: list[tuple[int, int]], pad_s: float = 0.5) -> np.ndarray:
+    """(T-1,) True for the frame-to-frame steps ``t[i] -> t[i+1]`` that touch a seam: the overlap of two
+    neighbouring windows (``[start of window k+1, end of window k]``) widened by ``pad_s`` on both sides."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    mid = (t[:-1] + t[1:]) // 2 if len(t) > 1 else t[:0]
+    pad = int(pad_s * 1e9)
+    m = np.zeros(len(mid), bool)
+    for (_, b0), (a1, _) in zip(windows, windows[1:]):
+        m |= (mid >= min(a1, b0) - pad) & (mid <= max(a1, b0) + pad)
+    return m
+
+
+def motion_steps(t_ns: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame-to-frame step of a motion (T, J, 3): the largest joint displacement (m, (T-1,)) and the largest
+    change of a joint's velocity against the previous step (m/s, (T-1,); 0 for the first step)."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    d = np.diff(np.asarray(joints, dtype=float), axis=0)  # (T-1, J, 3)
+    disp = np.linalg.norm(d, axis=-1).max(axis=-1) if len(d) else np.zeros(0)
+    dt = np.maximum(np.diff(t) * 1e-9, 1e-9)
+    v = d / dt[:, None, None]
+    dv = np.zeros(len(d))
+    if len(d) > 1:
+        dv[1:] = np.linalg.norm(np.diff(v, axis=0), axis=-1).max(axis=-1)
+    return disp, dv
+
+
+def seam_figures(t_ns: np.ndarray, joints: np.ndarray, windows: list[tuple[int, int]], pad_s: float = 0.5) -> dict:
+    """How continuous a stitched motion is at the window seams against inside the windows: the largest and the 99th
+    percentile frame-to-frame joint displacement (``step_m``) and velocity change (``dv_mps``), for the steps at a seam
+    (:func:`seam_mask`) and for the others. A jump at a seam shows as a seam maximum far above the inside maximum."""
+    disp, dv = motion_steps(t_ns, joints)
+    m = seam_mask(t_ns, windows, pad_s)
+    out: dict = {"seams": max(0, len(windows) - 1), "steps_at_seams": int(m.sum()), "steps_inside": int((~m).sum())}
+    for name, x in (("step_m", disp), ("dv_mps", dv)):
+        for where, sel in (("seam", m), ("inside", ~m)):
+            v = x[sel]
+            out[f"{name}_{where}_max"] = float(v.max()) if len(v) else None
+            out[f"{name}_{where}_p99"] = float(np.percentile(v, 99)) if len(v) else None
+    return out

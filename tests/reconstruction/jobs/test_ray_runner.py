@@ -71,3 +71,12 @@ def test_reconstruct_flight_on_ray_equals_local(ray_runner, small_flight, local_
     np.testing.assert_allclose(res.joints_ned, ref.joints_ned, atol=1e-6)
     np.testing.assert_array_equal(res.t_ns, ref.t_ns)
     assert (a / "reconstruction" / "motion.bvh").read_text() == (b / "reconstruction" / "motion.bvh").read_text()
+
+
+def test_ray_submit_refuses_a_missing_flight_folder(ray_runner, tmp_path):
+    from reconstruction.jobs import JobError
+
+    before = len(ray_runner.jobs)
+    with pytest.raises(JobError, match=r"flight folder .*nowhere does not exist: pass the folder"):
+        ray_runner.submit(tmp_path / "nowhere", StepConfig(steps=1), processor=STEP)
+    assert len(ray_runner.jobs) == before  # nothing submitted
