@@ -96,11 +96,11 @@ def test_two_sorties_with_a_three_drone_orbit_on_px4(px4, tmp_path):
         time.sleep(2.0)
         heights = [f.height_m(k) for k in range(3)]
         assert all(abs(h - TAKEOFF_M) < 0.5 for h in heights), (sortie, heights)  # not 1.4 m low (SIH ground 489.4 m)
-        # the first sortie's orbit is measured (8 s to settle, then 14 s of steady orbit, ~120 deg); the second only
-        # has to reach its orbit before the landing
-        plan, t_start = _orbit(f, 22.0 if sortie == 1 else 6.0)
+        # the first sortie's orbit is measured (8 s to settle, then 22 s; over 14 s the height RMS was 0.74-0.77 m,
+        # too near its bound); the second only has to reach its orbit before the landing
+        plan, t_start = _orbit(f, 30.0 if sortie == 1 else 6.0)
         if sortie == 1:
-            fig = f.orbit_errors(plan, t_start + 8.0, t_start + 22.0)
+            fig = f.orbit_errors(plan, t_start + 8.0, t_start + 30.0)
             (tmp_path / "px4_orbit.json").write_text(json.dumps(fig, indent=1))
             print("PX4 SITL orbit figures vs SIH truth:", json.dumps(fig))
             assert fig["min_separation_m"] > 3.0
