@@ -1,6 +1,12 @@
-"""``skycap faults run``, one short scenario per test (2 drones, 20 s of orbit, the fault 10 s after the start):
-each flight must stay safe (truth: separation, geofence, no landing other than by policy) and lose no recording
-(a crash: at most 1 s). The whole suite is the command itself (``skycap faults run --out DIR``)."""
+"""``skycap faults run``, one short scenario per test (2 drones, the fault 10 s after the start): each flight must
+stay safe (truth: separation, geofence, no landing other than by policy) and lose no recording (a crash: at most
+1 s). The whole suite is the command itself (``skycap faults run --out DIR``).
+
+Test flights are shorter than the suite's defaults (what each scenario asserts, not its length, is under test): the
+orbit at 3 m instead of 6 m (take-off and landing take half as long), and the orbit only as long as the scenario
+needs -- 14 s (the shortest the demo allows after its 8 s settling) for faults present from the start, 16 s for a
+fault at 10 s that the drones must ride out, 20 s where the test asserts on what comes well after the fault (the
+landing by policy after the 5 s heartbeat timeout, the outsider's 10 s, the full disk's > 5 s)."""
 
 from __future__ import annotations
 
@@ -14,10 +20,14 @@ import pytest
 pytestmark = pytest.mark.slow
 
 
-def _run(tmp_path: Path, name: str, *sets: str) -> tuple[dict, Path]:
+#: orbit seconds: a fault from the start / a fault at 10 s to ride out / a test of what comes > 5 s after the fault
+FROM_START_S, RIDE_OUT_S, LONG_S = 14, 16, 20
+
+
+def _run(tmp_path: Path, name: str, duration_s: float, *sets: str) -> tuple[dict, Path]:
     out = tmp_path / "faults"
     cmd = [sys.executable, "-m", "apps.cli", "faults", "run", "--scenario", name, "--out", str(out),
-           "--set", "demo.duration_s=20"]
+           "--set", f"demo.duration_s={duration_s}", "--set", "demo.orbit.altitude_m=3.0"]
     for s in sets:
         cmd += ["--set", s]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -37,7 +47,7 @@ def _assert_safe(e: dict) -> None:
 
 
 def test_message_loss_30pct(tmp_path):
-    e, _ = _run(tmp_path, "message_loss_30pct")
+    e, _ = _run(tmp_path, "message_loss_30pct", FROM_START_S)
     _assert_safe(e)
     assert e["recording_lost_s"] == 0.0
     for d in ("drone_1", "drone_2"):
@@ -47,7 +57,7 @@ def test_message_loss_30pct(tmp_path):
 
 
 def test_delay_200ms(tmp_path):
-    e, _ = _run(tmp_path, "delay_200ms")
+    e, _ = _run(tmp_path, "delay_200ms", FROM_START_S)
     _assert_safe(e)
     assert e["recording_lost_s"] == 0.0
     for d in ("drone_1", "drone_2"):
@@ -56,7 +66,7 @@ def test_delay_200ms(tmp_path):
 
 
 def test_agent_sigkill_restart_loses_at_most_1_s(tmp_path):
-    e, folder = _run(tmp_path, "agent_sigkill_restart")
+    e, folder = _run(tmp_path, "agent_sigkill_restart", RIDE_OUT_S)
     _assert_safe(e)
     d2 = e["drones"]["drone_2"]
     assert d2["recordings"] == ["drone_2.s001.mcap", "drone_2.s002.mcap"]  # the old file kept, a new one
@@ -69,7 +79,7 @@ def test_agent_sigkill_restart_loses_at_most_1_s(tmp_path):
 
 
 def test_gcs_link_lost_the_drones_land_by_policy(tmp_path):
-    e, _ = _run(tmp_path, "gcs_link_lost")
+    e, _ = _run(tmp_path, "gcs_link_lost", LONG_S)
     _assert_safe(e)
     assert e["recording_lost_s"] == 0.0
     for d in ("drone_1", "drone_2"):
@@ -80,7 +90,7 @@ def test_gcs_link_lost_the_drones_land_by_policy(tmp_path):
 
 
 def test_mavlink_link_lost_3s(tmp_path):
-    e, folder = _run(tmp_path, "mavlink_link_lost_3s")
+    e, folder = _run(tmp_path, "mavlink_link_lost_3s", RIDE_OUT_S)
     _assert_safe(e)
     assert e["recording_lost_s"] == 0.0  # the camera kept being recorded
     assert e["drones"]["drone_1"]["stream_gaps_s"]["state"] >= 2.0, e["drones"]["drone_1"]  # no telemetry
@@ -89,14 +99,14 @@ def test_mavlink_link_lost_3s(tmp_path):
 
 
 def test_gps_jump_3m(tmp_path):
-    e, folder = _run(tmp_path, "gps_jump_3m")
+    e, folder = _run(tmp_path, "gps_jump_3m", RIDE_OUT_S)
     _assert_safe(e)
     assert e["recording_lost_s"] == 0.0
     assert "SIMULATED GPS JUMP" in (folder / "logs" / "sim.log").read_text()
 
 
 def test_malformed_flood_is_refused(tmp_path):
-    e, _ = _run(tmp_path, "malformed_flood")
+    e, _ = _run(tmp_path, "malformed_flood", FROM_START_S)
     _assert_safe(e)
     assert e["recording_lost_s"] == 0.0
     injected = e["launcher_faults"]["malformed_messages_injected"]
@@ -110,7 +120,7 @@ def test_malformed_flood_is_refused(tmp_path):
 
 
 def test_outsider_without_certificate_can_neither_snoop_nor_command(tmp_path):
-    e, _ = _run(tmp_path, "outsider_without_certificate")
+    e, _ = _run(tmp_path, "outsider_without_certificate", LONG_S)
     _assert_safe(e)
     o = e["launcher_faults"]["outsider"]
     assert o["commands_sent"] >= 20, o  # 10 s, twice a second, from each of its two sessions
@@ -123,7 +133,7 @@ def test_outsider_without_certificate_can_neither_snoop_nor_command(tmp_path):
 
 
 def test_recorder_disk_full_keeps_flying_and_keeps_what_was_written(tmp_path):
-    e, folder = _run(tmp_path, "recorder_disk_full")
+    e, folder = _run(tmp_path, "recorder_disk_full", LONG_S)
     _assert_safe(e)
     d1 = e["drones"]["drone_1"]
     assert d1["recording_lost_s"] == 0.0, d1  # nothing written before the disk filled is lost
@@ -134,7 +144,7 @@ def test_recorder_disk_full_keeps_flying_and_keeps_what_was_written(tmp_path):
 
 
 def test_recorder_killed_restarts_into_a_new_file(tmp_path):
-    e, _ = _run(tmp_path, "recorder_killed")
+    e, _ = _run(tmp_path, "recorder_killed", RIDE_OUT_S)
     _assert_safe(e)
     d1 = e["drones"]["drone_1"]
     assert d1["recordings"] == ["drone_1.s001.mcap", "drone_1.s002.mcap"], d1

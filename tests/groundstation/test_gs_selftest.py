@@ -19,7 +19,9 @@ pytestmark = pytest.mark.slow
 def test_gs_selftest_whole_session_with_screenshots(tmp_path):
     out = tmp_path / "selftest"
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
-    r = subprocess.run([sys.executable, "-m", "apps.cli", "gs", "--selftest", str(out), "--orbit-s", "12"],
+    # a 6 s orbit (as the tracking session's below): the steps during the orbit wait for what they show, and the
+    # processing of a shorter flight is shorter
+    r = subprocess.run([sys.executable, "-m", "apps.cli", "gs", "--selftest", str(out), "--orbit-s", "6"],
                        capture_output=True, text=True, timeout=400, env=env)
     report = json.loads((out / "selftest.json").read_text())
     names = [s["name"] for s in report["steps"]]

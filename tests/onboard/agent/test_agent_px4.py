@@ -96,7 +96,9 @@ def test_two_sorties_with_a_three_drone_orbit_on_px4(px4, tmp_path):
         time.sleep(2.0)
         heights = [f.height_m(k) for k in range(3)]
         assert all(abs(h - TAKEOFF_M) < 0.5 for h in heights), (sortie, heights)  # not 1.4 m low (SIH ground 489.4 m)
-        plan, t_start = _orbit(f, 30.0 if sortie == 1 else 14.0)
+        # the first sortie's orbit is measured (8 s to settle, then 22 s; over 14 s the height RMS was 0.74-0.77 m,
+        # too near its bound); the second only has to reach its orbit before the landing
+        plan, t_start = _orbit(f, 30.0 if sortie == 1 else 6.0)
         if sortie == 1:
             fig = f.orbit_errors(plan, t_start + 8.0, t_start + 30.0)
             (tmp_path / "px4_orbit.json").write_text(json.dumps(fig, indent=1))
@@ -115,7 +117,7 @@ def test_stall_sigterm_and_ground_station_loss_on_px4(px4):
     # PX4's own default reaction to offboard loss (no RC): Return; the agent's policy: resume
     _start(f, "--set", 'autopilot.offboard_loss_action="return"', "--set", "safety.gcs_heartbeat_timeout_s=4")
     _takeoff(f)
-    plan, t_start = _orbit(f, 12.0)
+    plan, t_start = _orbit(f, 6.0)  # in its orbit (it starts 3 s after the plan)
     # 1. drone_1's agent stalls for 2.5 s (> COM_OF_LOSS_T = 1 s): PX4 returns; the agent reports it, resumes
     p1 = f.procs["drone_1"]
     os.killpg(p1.pid, signal.SIGSTOP)
