@@ -108,6 +108,12 @@ def compute_keypoints(sorties: Sequence[Sortie], drone_id: str, boxes: dict[str,
         imgs = [im for _, im in pending]
         for m, model in enumerate(mods):
             if cfg.track_rois and getattr(model, "predict_sequence", None) is not None:
+                # the region track starts afresh in every chunk (a batch never spans two): a chunk's keypoints then
+                # do not depend on which chunks this run computed, so a resumed run or another split of the chunks
+                # over the workers gives the uninterrupted run's keypoints
+                if tracks[m].get("chunk") != chunk_of(idx[0]):
+                    tracks[m].clear()
+                    tracks[m]["chunk"] = chunk_of(idx[0])
                 out[idx, m] = model.predict(imgs, box[idx], cfg.batch_size, frame_ids=idx, track=tracks[m])
                 stats["pose_detector_runs"] = stats.get("pose_detector_runs", 0) + tracks[m].pop("detector_runs", 0)
             else:
