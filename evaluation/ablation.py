@@ -336,27 +336,16 @@ def _lever_arm(flight: FlightFolder, drone_ids: list[str]) -> np.ndarray:
 
 def read_sim_capture(flight: FlightFolder) -> Capture:
     """The flight as ``skycap process --keypoints sim`` fits it: every drone's recorded poses and its recorded
-    ``sim/keypoints2d`` (the simulator's noisy true projections)."""
-    from flightdata.flightlog import SortieLogs
-    from reconstruction.flight import read_drone_log
-    from shared_msgs.messages import Keypoints2D
+    ``sim/keypoints2d`` (the simulator's noisy true projections), read by the pipeline's own reader."""
+    from reconstruction.capture import CaptureError
+    from reconstruction.process.pipeline import sim_camera
 
     cams = []
     for d, sorties in flight.drone_logs().items():
-        paths = [s.path for s in sorties]
-        msgs = SortieLogs(paths).read_topic("sim/keypoints2d", Keypoints2D)
-        if not msgs:
-            raise AblationError(f"{d}: no 'sim/keypoints2d' recorded: the ablation needs a simulated flight")
-        frames = sorted({m.header.t_measurement_ns for m in msgs})
-        fidx = {t: i for i, t in enumerate(frames)}
-        uv = np.zeros((len(frames), 1, 17, 2))
-        conf = np.zeros((len(frames), 1, 17))
-        for m in msgs:
-            if m.persons:
-                best = max(m.persons, key=lambda p: float(np.mean(p.confidence)))
-                uv[fidx[m.header.t_measurement_ns], 0] = np.reshape(best.keypoints_px, (17, 2))
-                conf[fidx[m.header.t_measurement_ns], 0] = best.confidence
-        cams.append(read_drone_log(paths, True, None, name=d, keypoints=(np.array(frames), [msgs[0].detector], uv, conf)))
+        try:
+            cams.append(sim_camera([s.path for s in sorties], d, True, None))
+        except CaptureError as e:
+            raise AblationError(f"{e} (the ablation needs a simulated flight)") from None
     return Capture(cams, meta={"source": "flight", "flight_dir": str(flight.path), "keypoints_source": "sim"})
 
 

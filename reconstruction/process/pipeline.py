@@ -56,7 +56,7 @@ from skycap.errors import SkycapError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ProcessResult", "process"]
+__all__ = ["ProcessResult", "process", "sim_camera"]
 
 CACHE_VERSION = 1
 
@@ -454,7 +454,7 @@ def _camera(sorties, d: str, source: str, boxes: dict | None, kp: np.ndarray | N
     paths = [s.path for s in sorties]
     if source != "models":
         if source == "sim":
-            return _sim_camera(paths, d, gimbal, offsets)
+            return sim_camera(paths, d, gimbal, offsets)
         return read_drone_log(paths, gimbal, offsets, name=d)
     t = np.asarray(boxes["t_ns"], dtype=np.int64)
     if cfg.keypoints.fuse:
@@ -470,7 +470,7 @@ def _camera(sorties, d: str, source: str, boxes: dict | None, kp: np.ndarray | N
     return read_drone_log(paths, gimbal, offsets, name=d, keypoints=(t[keep], dets, uv[keep], conf[keep]))
 
 
-def _sim_camera(paths, d, gimbal, offsets) -> CameraCapture:
+def sim_camera(paths, d, gimbal=True, offsets=None) -> CameraCapture:
     """The simulator's noisy true keypoints (``sim/keypoints2d``) even where a drone also recorded ``keypoints2d``."""
     from flightdata.flightlog import SortieLogs
     from shared_msgs.messages import Keypoints2D
