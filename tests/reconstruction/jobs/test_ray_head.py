@@ -5,6 +5,8 @@ process group: ``ray stop`` would stop every Ray on the machine)."""
 
 from __future__ import annotations
 
+import importlib.util
+
 import json
 import os
 import shutil
@@ -15,6 +17,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -59,54 +62,73 @@ def ray_head():
     ray_bin = Path(sys.executable).with_name("ray")
     if not ray_bin.is_file():
         pytest.skip(f"no 'ray' command beside {sys.executable}")
-    port = free_tcp_port()
-    temp = tempfile.mkdtemp(prefix="rayh", dir="/tmp")  # short: Ray's socket paths live there
-    ports = {f"--{k}": str(free_tcp_port()) for k in (
-        "ray-client-server-port", "node-manager-port", "object-manager-port", "dashboard-agent-listen-port",
-        "dashboard-agent-grpc-port", "metrics-export-port", "runtime-env-agent-port")}
-    lo = free_tcp_port()
-    cmd = [str(ray_bin), "start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--num-cpus=2",
-           "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp}", "--block",
-           f"--min-worker-port={lo}", f"--max-worker-port={lo + 200}",
-           *[f"{k}={v}" for k, v in ports.items()]]
-    head_log = open(Path(temp).with_suffix(".log"), "w+")
-    head = subprocess.Popen(cmd, stdout=head_log, stderr=subprocess.STDOUT, text=True, env=_env(),
-                            start_new_session=True)
-    try:
+    # the Ray Client server (its own port) only where its dependency is installed: `ray start` refuses the port
+    # option without grpcio (a plain `pip install ray`, as the `ray` extra installs it)
+    client = ("ray-client-server-port",) if importlib.util.find_spec("grpc") else ()
+
+    started: list[tuple[subprocess.Popen, Any, str]] = []  # (head, its log, its temp folder): all cleaned up after
+
+    def start() -> tuple[subprocess.Popen, int, str]:
+        port = free_tcp_port()
+        temp = tempfile.mkdtemp(prefix="rayh", dir="/tmp")  # short: Ray's socket paths live there
+        ports = {f"--{k}": str(free_tcp_port()) for k in (
+            *client, "node-manager-port", "object-manager-port", "dashboard-agent-listen-port",
+            "dashboard-agent-grpc-port", "metrics-export-port", "runtime-env-agent-port")}
+        lo = free_tcp_port()
+        cmd = [str(ray_bin), "start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--num-cpus=2",
+               "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp}", "--block",
+               f"--min-worker-port={lo}", f"--max-worker-port={lo + 200}",
+               *[f"{k}={v}" for k, v in ports.items()]]
+        head_log = open(Path(temp).with_suffix(".log"), "w+")
+        head = subprocess.Popen(cmd, stdout=head_log, stderr=subprocess.STDOUT, text=True, env=_env(),
+                                start_new_session=True)
+        started.append((head, head_log, temp))
         t_end = time.monotonic() + 90
         while True:
             if head.poll() is not None:
                 head_log.seek(0)
-                pytest.fail(f"ray start exited {head.returncode}:\n{head_log.read()[-3000:]}")
-            assert time.monotonic() < t_end, "the Ray head did not open its port within 90 s"
+                return head, 0, f"ray start exited {head.returncode}:\n{head_log.read()[-3000:]}"
+            if time.monotonic() > t_end:
+                return head, 0, "the Ray head did not open its port within 90 s"
             try:
                 socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-                break
+                return head, port, ""
             except OSError:
                 time.sleep(0.2)
+
+    head, port, why = start()
+    if not port and head.poll() is not None:  # a port taken between choosing it and Ray binding it: once more
+        head, port, why = start()
+    try:
+        assert port, why
         yield f"127.0.0.1:{port}"
     finally:
         # the head's processes (ray start, GCS, raylet, workers) are its process group: SIGTERM, up to 5 s to end,
         # then SIGKILL what is left
-        def group() -> list[str]:
-            out = subprocess.run(["ps", "-o", "pid=,stat=", "-g", str(head.pid)], capture_output=True, text=True).stdout
-            return [ln.split()[0] for ln in out.splitlines() if ln.split() and not ln.split()[1].startswith("Z")]
+        for head, head_log, temp in started:
+            _stop_group(head)
+            head_log.close()
+            Path(head_log.name).unlink(missing_ok=True)
+            shutil.rmtree(temp, ignore_errors=True)
 
-        try:
-            os.killpg(head.pid, signal.SIGTERM)
-        except ProcessLookupError:
-            pass
-        t_end = time.monotonic() + 5
-        while group() and time.monotonic() < t_end:
-            time.sleep(0.2)
-        try:
-            os.killpg(head.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        head.wait(10)
-        head_log.close()
-        Path(head_log.name).unlink(missing_ok=True)
-        shutil.rmtree(temp, ignore_errors=True)
+
+def _stop_group(head: subprocess.Popen) -> None:
+    def group() -> list[str]:
+        out = subprocess.run(["ps", "-o", "pid=,stat=", "-g", str(head.pid)], capture_output=True, text=True).stdout
+        return [ln.split()[0] for ln in out.splitlines() if ln.split() and not ln.split()[1].startswith("Z")]
+
+    try:
+        os.killpg(head.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        pass
+    t_end = time.monotonic() + 5
+    while group() and time.monotonic() < t_end:
+        time.sleep(0.2)
+    try:
+        os.killpg(head.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    head.wait(10)
 
 
 def test_process_on_a_separately_started_ray_head_equals_the_local_runner(ray_head, small_flight, tmp_path):
