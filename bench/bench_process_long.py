@@ -113,26 +113,11 @@ def find_summary(flight: Path) -> Path:
 
 def truth_joints(flight: Path, t_ns: np.ndarray) -> np.ndarray | None:
     """The simulator's true COCO-17 joints (NED m) interpolated to ``t_ns``; None without a truth."""
-    from flightdata.flightlog import FlightLog
-    from shared_msgs import SimTruth
+    from evaluation.flight import joints_at, read_true_joints
 
     path = flight / "truth.mcap"
-    if not path.is_file():
-        return None
-    ts, js = [], []
-    for m in FlightLog(path).messages():
-        if isinstance(m.msg, SimTruth) and len(m.msg.person_joints_ned_m) == 51:
-            ts.append(m.msg.header.t_measurement_ns)
-            js.append(np.asarray(m.msg.person_joints_ned_m, dtype=float).reshape(17, 3))
-    if len(ts) < 2:
-        return None
-    ts = np.asarray(ts, dtype=np.int64)
-    J = np.stack(js)
-    o = np.argsort(ts)
-    ts, J = ts[o], J[o]
-    x = (t_ns - ts[0]).astype(float)
-    xp = (ts - ts[0]).astype(float)
-    return np.stack([np.stack([np.interp(x, xp, J[:, j, c]) for c in range(3)], -1) for j in range(17)], 1)
+    true = read_true_joints(path) if path.is_file() else None
+    return None if true is None else joints_at(*true, t_ns)
 
 
 def window_disagreement(flight: Path, n_windows: int) -> dict | None:

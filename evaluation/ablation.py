@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from evaluation.flight import joints_at
 from flightdata.flightlog import FlightLog
 from flightdata.folder import FlightFolder
 from reconstruction.capture import CameraCapture, Capture, interpolate_poses
@@ -94,10 +95,7 @@ class TruthTracks:
 
     def joints_at(self, t_ns: np.ndarray) -> np.ndarray:
         """The true joints (Q, 17, 3) at ``t_ns`` (Q,), linearly interpolated (held at the ends)."""
-        tq = (np.asarray(t_ns, dtype=np.int64) - self.t_ns[0]).astype(float)
-        tt = (self.t_ns - self.t_ns[0]).astype(float)
-        J = self.joints_ned_m.reshape(len(tt), -1)
-        return np.stack([np.interp(tq, tt, J[:, k]) for k in range(J.shape[1])], -1).reshape(len(tq), 17, 3)
+        return joints_at(self.t_ns, self.joints_ned_m, t_ns)
 
 
 def read_truth(path: str | Path, drone_ids: list[str]) -> TruthTracks:

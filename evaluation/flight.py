@@ -270,22 +270,14 @@ def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | Non
     rec = np.load(npz)
     t_rec = rec["t_ns"].astype(np.int64)
     pred = np.asarray(rec["joints_ned"], dtype=float)
-    ts, joints = [], []
-    for m in FlightLog(truth).messages():
-        if isinstance(m.msg, SimTruth) and len(m.msg.person_joints_ned_m) == 51:
-            ts.append(m.msg.header.t_measurement_ns)
-            joints.append(np.asarray(m.msg.person_joints_ned_m, dtype=float).reshape(17, 3))
-    if len(ts) < 2:
+    true = read_true_joints(truth)
+    if true is None:
         return {}
-    order = np.argsort(ts)
-    t_true = np.asarray(ts, dtype=np.int64)[order]
-    J = np.asarray(joints)[order]
+    t_true, J = true
     inside = (t_rec >= t_true[0]) & (t_rec <= t_true[-1])
     if not inside.any():
         return {}
-    tq = (t_rec[inside] - t_true[0]).astype(float)
-    tt = (t_true - t_true[0]).astype(float)
-    gt = np.stack([np.stack([np.interp(tq, tt, J[:, j, k]) for k in range(3)], -1) for j in range(17)], 1)
+    gt = joints_at(t_true, J, t_rec[inside])
     pred = pred[inside]
     sj = list(SCORED_JOINTS)
     out = {"keypoints_source": keypoints_source or _capture_detectors(npz.parent / "capture.npz"),
@@ -299,6 +291,29 @@ def reconstruction_accuracy(flight_dir: str | Path, motion_npz: str | Path | Non
             out.update(accuracy_metrics(pred[sel], gt[sel], sj, suffix="_window"))
             out["window_s"] = [float(window_s[0]), float(window_s[1])]
     return out
+
+
+def read_true_joints(truth_path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """The person's true COCO-17 joints of a ``truth.mcap`` (SimTruth): (t_ns (T,) int64 in time order,
+    joints (T, 17, 3) NED m); None with fewer than two samples."""
+    ts, joints = [], []
+    for m in FlightLog(truth_path).messages():
+        if isinstance(m.msg, SimTruth) and len(m.msg.person_joints_ned_m) == 51:
+            ts.append(m.msg.header.t_measurement_ns)
+            joints.append(np.asarray(m.msg.person_joints_ned_m, dtype=float).reshape(17, 3))
+    if len(ts) < 2:
+        return None
+    order = np.argsort(ts)
+    return np.asarray(ts, dtype=np.int64)[order], np.asarray(joints)[order]
+
+
+def joints_at(t_true_ns: np.ndarray, joints: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+    """Joints (T, 17, 3) at times ``t_true_ns`` (T,) -> at ``t_ns`` (Q,): (Q, 17, 3), linearly interpolated (held at
+    the ends)."""
+    tq = (np.asarray(t_ns, dtype=np.int64) - t_true_ns[0]).astype(float)
+    tt = (np.asarray(t_true_ns, dtype=np.int64) - t_true_ns[0]).astype(float)
+    J = np.asarray(joints, dtype=float).reshape(len(tt), -1)
+    return np.stack([np.interp(tq, tt, J[:, k]) for k in range(J.shape[1])], -1).reshape(len(tq), 17, 3)
 
 
 def _capture_detectors(path: Path) -> str:

@@ -6,6 +6,7 @@ so events reach subscribers in the order the processor reported them.
 
 from __future__ import annotations
 
+import abc
 import logging
 import pickle
 import threading
@@ -239,7 +240,7 @@ def _call(cb: Callable, arg: Any) -> None:
         log.exception("job callback %r failed", cb)
 
 
-class Runner:
+class Runner(abc.ABC):
     """What every runner shares: the jobs it was given (``jobs``, guarded by ``_lock``) and use as a context
     manager (``with LocalRunner() as r:`` closes it, cancelling what still runs). Subclasses define ``name``,
     ``submit`` and ``close``."""
@@ -256,8 +257,13 @@ class Runner:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    @abc.abstractmethod
+    def submit(self, flight_dir: str | Path, config: Any = None, *, processor: Any = "process") -> Job:
+        """Start processing ``flight_dir`` with ``config``; the :class:`Job` to follow it."""
+
+    @abc.abstractmethod
     def close(self, *, cancel: bool = True, timeout: float | None = None) -> None:
-        raise NotImplementedError
+        """Stop taking jobs; cancel the running ones (``cancel``) and wait up to ``timeout`` s for them."""
 
     @property
     def jobs(self) -> list[Job]:
