@@ -34,8 +34,11 @@ modes move the centre away from the camera by ``stride_lead_s * |v . u|`` (:attr
 The covariance is first-order propagation ``J diag(inputs) J^T`` of: the four box edges (per-edge pixel
 variance, floored at ``min_edge_var_px2``), the person-height prior (``person_height_sigma_m``), the camera
 position (3) and the camera orientation (3, small world-frame rotations ``R' = exp([dtheta]_x) R``, the
-convention of :attr:`shared_msgs.messages.Detections.T_world_cam_cov`). The Jacobian is central finite
-differences of the closed-form model (11 inputs, 23 evaluations of a 3x3 least-squares problem). The result
+convention of :attr:`shared_msgs.messages.Detections.T_world_cam_cov`). The Jacobians are closed form
+(:func:`_height_prior_point_jac`, :func:`_ground_point_jac`, :func:`_bearing_point_jac`: the chain rule through the
+pixel rays, their normalisation and the 2x2 normal equations; the fused point's weights are held at the nominal
+point), one model evaluation per box instead of the 25 of central differences, equal to those to ~1e-7 relative
+(``tests/onboard/tracking/test_measurement_jacobian.py``). The result
 is elongated along the viewing ray (range from box height is much less certain than bearing).
 
 Two covariances are returned: ``cov_m2`` (everything) and ``cov_no_cam_position_m2`` (without the camera

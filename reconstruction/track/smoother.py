@@ -30,8 +30,14 @@ each other and to the person, and share the fleet's mean GPS error.
 Why a Rauch-Tung-Striebel smoother (and not a sparse least-squares / factor graph): the model is linear and
 Gaussian with Markov structure, for which the RTS recursion *is* the exact batch (MAP) solution, in
 ``O(N n^3)`` time and ``O(N n^2)`` memory with ``n <= 30`` for 8 drones (about 0.5 ms per step here; 2 x 7 kB
-per step for 8 drones: a 20-minute flight of 8 drones at 10 Hz needs ~1.7 GB, of 3 drones ~0.2 GB); it also gives the marginal
-covariances for free, which a sparse solve would need a separate (selected-inversion) step for. Outliers are
+per step for 8 drones: a 20-minute flight of 8 drones at 10 Hz would need ~1.7 GB at once, of 3 drones ~0.2 GB); it
+also gives the marginal covariances for free, which a sparse solve would need a separate (selected-inversion) step
+for. Long flights are smoothed in overlapping segments (``segment_s`` = 60 s, ``segment_overlap_s`` = 20 s), so
+the ``O(N n^2)`` arrays are those of one segment whatever the flight's length: each segment starts from the
+previous one's forward prediction at its first step (the forward pass is that of the whole flight), runs on 20 s
+past its end (what the backward pass sees of the future) and is cross-faded into the next over 10 s. On a 90 s
+synthetic flight with GPS-grade offsets that changes the track by <= 3 mm (the offsets' 60 s correlation reaches
+past the look-ahead); the frame choices are the same. Outliers are
 handled by iteratively re-weighted smoothing (an M-estimator): every smoothing pass is followed by
 re-weighting each detection by a Huber weight of its Mahalanobis residual against the smoothed state
 (``huber_k``), rejecting those beyond the chi-square gate (``gate_probability``), and choosing, among the
