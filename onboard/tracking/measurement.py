@@ -34,8 +34,11 @@ modes move the centre away from the camera by ``stride_lead_s * |v . u|`` (:attr
 The covariance is first-order propagation ``J diag(inputs) J^T`` of: the four box edges (per-edge pixel
 variance, floored at ``min_edge_var_px2``), the person-height prior (``person_height_sigma_m``), the camera
 position (3) and the camera orientation (3, small world-frame rotations ``R' = exp([dtheta]_x) R``, the
-convention of :attr:`shared_msgs.messages.Detections.T_world_cam_cov`). The Jacobian is central finite
-differences of the closed-form model (11 inputs, 23 evaluations of a 3x3 least-squares problem). The result
+convention of :attr:`shared_msgs.messages.Detections.T_world_cam_cov`). The Jacobians are closed form
+(:func:`_height_prior_point_jac`, :func:`_ground_point_jac`, :func:`_bearing_point_jac`: the chain rule through the
+pixel rays, their normalisation and the 2x2 normal equations; the fused point's weights are held at the nominal
+point), one model evaluation per box instead of the 25 of central differences, equal to those to ~1e-7 relative
+(``tests/onboard/tracking/test_measurement_jacobian.py``). The result
 is elongated along the viewing ray (range from box height is much less certain than bearing).
 
 Two covariances are returned: ``cov_m2`` (everything) and ``cov_no_cam_position_m2`` (without the camera
@@ -243,6 +246,93 @@ def _jacobian(model, edges: np.ndarray, H: float, cols=range(12)) -> np.ndarray:
     return J
 
 
+def _unit_jacobian(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(r / |r|, d(r / |r|) / dr (3, 3))."""
+    nr = math.sqrt(float(r @ r))
+    n = r / nr
+    return n, (np.eye(3) - np.outer(n, n)) / nr
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _ray_jacobian(M: np.ndarray, r: np.ndarray, du: tuple[float, float, float, float], dv: tuple[float, float, float, float]) -> np.ndarray:
+    """(3, 12) derivative of the world ray ``r = M [u, v, 1]`` (``M = R K^-1``) over the model inputs: the pixel
+    (u, v) depends on the box edges by ``du`` / ``dv`` (4,), and a world-frame rotation ``exp([dth]_x)`` turns the
+    ray by ``dth x r`` (columns 8-10: ``-[r]_x``); height, camera position and ground do not move it."""
+    J = np.zeros((3, 12))
+    J[:, :4] = np.outer(M[:, 0], du) + np.outer(M[:, 1], dv)
+    J[:, 8:11] = -_skew(r)
+    return J
+
+
+def _height_prior_point_jac(edges: np.ndarray, h: float, c: np.ndarray, R_wc: np.ndarray, K_inv: np.ndarray,
+                            min_parallax: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_height_prior_point` and its closed-form (3, 12) Jacobian over the inputs (see :data:`_STEPS`)."""
+    p = _height_prior_point(edges, h, c, R_wc, K_inv, min_parallax)  # the checks and the value
+    x0, y0, x1, y1 = edges
+    u = 0.5 * (x0 + x1)
+    M = R_wc @ K_inv
+    r_t = M @ np.array([u, y0, 1.0])
+    r_b = M @ np.array([u, y1, 1.0])
+    t, Nt = _unit_jacobian(r_t)
+    b_, Nb = _unit_jacobian(r_b)
+    dt = Nt @ _ray_jacobian(M, r_t, (0.5, 0.0, 0.5, 0.0), (0.0, 1.0, 0.0, 0.0))  # (3, 12)
+    db = Nb @ _ray_jacobian(M, r_b, (0.5, 0.0, 0.5, 0.0), (0.0, 0.0, 0.0, 1.0))
+    cb = float(t @ b_)
+    det = 1.0 - cb * cb
+    na = -t[2] + cb * b_[2]  # a = h na / det, b = h nb / det
+    nb = b_[2] - cb * t[2]
+    a, b = h * na / det, h * nb / det
+    # derivatives with respect to t and b (row vectors, 3)
+    ez = np.array([0.0, 0.0, 1.0])
+    dcb_dt, dcb_db = b_, t
+    ddet_dt, ddet_db = -2.0 * cb * dcb_dt, -2.0 * cb * dcb_db
+    dna_dt, dna_db = -ez + b_[2] * dcb_dt, cb * ez + b_[2] * dcb_db
+    dnb_dt, dnb_db = -cb * ez - t[2] * dcb_dt, ez - t[2] * dcb_db
+    da_dt = h * (dna_dt * det - na * ddet_dt) / det**2
+    da_db = h * (dna_db * det - na * ddet_db) / det**2
+    db_dt = h * (dnb_dt * det - nb * ddet_dt) / det**2
+    db_db = h * (dnb_db * det - nb * ddet_db) / det**2
+    dp_dt = 0.5 * (np.outer(t, da_dt) + a * np.eye(3) + np.outer(b_, db_dt))
+    dp_db = 0.5 * (np.outer(t, da_db) + np.outer(b_, db_db) + b * np.eye(3))
+    J = dp_dt @ dt + dp_db @ db
+    J[:, 4] = (p - c) / h
+    J[:, 5:8] += np.eye(3)
+    return p, J
+
+
+def _ground_point_jac(edges: np.ndarray, h: float, g: float, c: np.ndarray, R_wc: np.ndarray, K_inv: np.ndarray,
+                      ground_down_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_ground_point` and its closed-form (3, 12) Jacobian (the height column: the centre is h / 2 above
+    the feet)."""
+    p = _ground_point(edges, h, g, c, R_wc, K_inv, ground_down_m)
+    M = R_wc @ K_inv
+    r = M @ np.array([0.5 * (edges[0] + edges[2]), edges[3], 1.0])
+    depth = ground_down_m - g - c[2]
+    s = depth / r[2]
+    ez = np.array([0.0, 0.0, 1.0])
+    slide = np.eye(3) - np.outer(r, ez) / r[2]  # d feet / d camera position; d feet / d r = s * slide
+    J = s * slide @ _ray_jacobian(M, r, (0.5, 0.0, 0.5, 0.0), (0.0, 0.0, 0.0, 1.0))
+    J[:, 4] = -0.5 * ez
+    J[:, 5:8] = slide
+    J[:, 11] = -r / r[2]
+    return p, J
+
+
+def _bearing_point_jac(edges: np.ndarray, c: np.ndarray, R_wc: np.ndarray, K_inv: np.ndarray,
+                       range_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_bearing_point` and its closed-form (3, 12) Jacobian."""
+    M = R_wc @ K_inv
+    x0, y0, x1, y1 = edges
+    r = M @ np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1), 1.0])
+    n, Nr = _unit_jacobian(r)
+    J = range_m * Nr @ _ray_jacobian(M, r, (0.5, 0.0, 0.5, 0.0), (0.0, 0.5, 0.0, 0.5))
+    J[:, 5:8] = np.eye(3)
+    return c + range_m * n, J
+
+
 def measurement_from_box(
     box: BoundingBox | np.ndarray,
     intrinsics: PinholeCamera,
@@ -309,18 +399,14 @@ def measurement_from_box(
             _ground_point(edges, H, 0.0, c0, R0, K_inv, ground_down_m)
         except MeasurementError:
             mode = "height_prior"  # the feet cannot be put on the ground from here: height prior alone
+    mp = config.min_vertical_parallax_rad
     if mode == "height_and_ground":
         # information weights of the two range estimates, from their own spreads (edges + height / ground)
-        def model_h(e, h, dc, dth, g=0.0):
-            return _height_prior_point(e, h, c0 + dc, R0, K_inv, config.min_vertical_parallax_rad)
-
-        def model_g(e, h, dc, dth, g=0.0):
-            return _ground_point(e, H, g, c0 + dc, R0, K_inv, ground_down_m)
-
-        Jh = _jacobian(model_h, edges, H, _EDGES + [_HEIGHT])
-        Jg = _jacobian(model_g, edges, H, _EDGES + [_GROUND] + _CAM_POSITION)
-        C_h = Jh @ np.diag([*ev, config.person_height_sigma_m**2]) @ Jh.T
-        C_g = Jg[:, :5] @ np.diag([*ev, config.ground_sigma_m**2]) @ Jg[:, :5].T
+        p_h, Jh = _height_prior_point_jac(edges, H, c0, R0, K_inv, mp)
+        p_g, Jg = _ground_point_jac(edges, H, 0.0, c0, R0, K_inv, ground_down_m)
+        C_h = Jh[:, :5] @ np.diag([*ev, config.person_height_sigma_m**2]) @ Jh[:, :5].T
+        Jg_e = Jg[:, _EDGES + [_GROUND]]
+        C_g = Jg_e @ np.diag([*ev, config.ground_sigma_m**2]) @ Jg_e.T
         # a camera position error that the filter's offset (z = p + b) does not explain: the ground point slides
         # along the ray when the camera's height over the ground plane is off (see _unmodelled_camera_cov)
         C_g = C_g + _unmodelled_camera_cov(Jg[:, 5:8], pose_cov)
@@ -330,46 +416,30 @@ def measurement_from_box(
         I_h, I_g = np.linalg.inv(C_h + reg), np.linalg.inv(C_g + reg)
         C_f = np.linalg.inv(I_h + I_g)
         A_h, A_g = C_f @ I_h, C_f @ I_g
-
-        def model(e, h, dc, dth, g=0.0):
-            R = _rotvec_matrix(dth) @ R0
-            c = c0 + dc
-            return A_h @ _height_prior_point(e, h, c, R, K_inv, config.min_vertical_parallax_rad) + A_g @ _ground_point(e, h, g, c, R, K_inv, ground_down_m)
-
+        # the fused point A_h p_h + A_g p_g (weights fixed at the nominal point); the height prior's point does
+        # not depend on the ground, the ground point's on the height only through the centre's H / 2
+        p = A_h @ p_h + A_g @ p_g
+        J = A_h @ Jh + A_g @ Jg
     elif mode == "bearing":
         if range_hint_m is None:
             # feet: the bottom-centre ray meets the ground plane; the centre is half the height above it
-            def model(e, h, dc, dth, g=0.0):
-                R = _rotvec_matrix(dth) @ R0
-                return _ground_point(e, H, g, c0 + dc, R, K_inv, ground_down_m)
-
+            p, J = _ground_point_jac(edges, H, 0.0, c0, R0, K_inv, ground_down_m)
         else:
             range_m = float(range_hint_m)
             if not (math.isfinite(range_m) and range_m > 0):
                 raise MeasurementError(f"range_hint_m must be finite and > 0, got {range_hint_m}")
-
-            def model(e, h, dc, dth, g=0.0):
-                R = _rotvec_matrix(dth) @ R0
-                return _bearing_point(e, c0 + dc, R, K_inv, range_m)
-
+            p, J = _bearing_point_jac(edges, c0, R0, K_inv, range_m)
     elif mode == "height_prior":
-
-        def model(e, h, dc, dth, g=0.0):
-            R = _rotvec_matrix(dth) @ R0
-            return _height_prior_point(e, h, c0 + dc, R, K_inv, config.min_vertical_parallax_rad)
-
+        p, J = _height_prior_point_jac(edges, H, c0, R0, K_inv, mp)
     else:
         raise MeasurementError(f"unknown measurement mode {mode!r}; use 'height_and_ground', 'height_prior' or 'bearing'")
 
-    z0 = np.zeros(3)
-    p = model(edges, H, z0, z0)
     if mode in ("height_prior", "height_and_ground"):
         # in front of the camera
         if (R0.T @ (p - c0))[2] <= 0:
             raise MeasurementError("the measured person lies behind the camera; check T_world_cam")
         p = p + _stride_lead_correction(p - c0, person_velocity_ned_mps, config.stride_lead_s)
 
-    J = _jacobian(model, edges, H)
     if mode == "bearing":
         J[:, 4] = 0.0
     Sigma_in = np.zeros((12, 12))

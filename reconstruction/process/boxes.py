@@ -31,7 +31,7 @@ from shared_msgs.messages import Detections
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SOURCE_NAMES", "choose_boxes", "compute_boxes", "read_detections", "iou_xyxy"]
+__all__ = ["SOURCE_NAMES", "TrackBoxes", "choose_boxes", "compute_boxes", "read_detections", "iou_xyxy", "smoother_boxes"]
 
 #: box source codes in the cache: 0 none, 1 recorded detection, 2 smoother track, 3 detector re-run
 SOURCE_NAMES = ("none", "detection", "track", "detector")
@@ -47,6 +47,11 @@ def iou_xyxy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(ua > 0, inter / np.where(ua > 0, ua, 1), 0.0)
 
 
+def _person_rows(d: Detections) -> np.ndarray:
+    rows = [(b.x_min_px, b.y_min_px, b.x_max_px, b.y_max_px, b.score) for b in d.boxes if b.label == "person"]
+    return np.asarray(rows, dtype=float).reshape(-1, 5)
+
+
 def read_detections(sorties: Sequence[Sortie], drone_id: str) -> tuple[str, dict[int, np.ndarray]]:
     """(topic used, {capture time ns: boxes (N, 5) x_min, y_min, x_max, y_max, score}) of the drone's own person
     detections: ``detections`` when recorded, else ``sim/detections``."""
@@ -56,10 +61,20 @@ def read_detections(sorties: Sequence[Sortie], drone_id: str) -> tuple[str, dict
             d = m.msg
             if not isinstance(d, Detections) or d.header.sender_id != drone_id:
                 continue
-            rows = [(b.x_min_px, b.y_min_px, b.x_max_px, b.y_max_px, b.score) for b in d.boxes if b.label == "person"]
-            found[m.topic][int(d.header.t_measurement_ns)] = np.asarray(rows, dtype=float).reshape(-1, 5)
+            found[m.topic][int(d.header.t_measurement_ns)] = _person_rows(d)
     topic = "detections" if found["detections"] else "sim/detections"
     return topic, found[topic]
+
+
+class TrackBoxes(dict):
+    """{capture time ns: the smoothed person's box (x_min, y_min, x_max, y_max)} of one drone, with the drone's
+    person detections the smoother read (``topic``, ``detections`` as :func:`read_detections` returns them), so
+    that :func:`compute_boxes` does not read the recording again."""
+
+    def __init__(self, boxes: dict[int, np.ndarray], topic: str, detections: dict[int, np.ndarray]):
+        super().__init__(boxes)
+        self.topic = topic
+        self.detections = detections
 
 
 def choose_boxes(t_ns: np.ndarray, width_px: int, height_px: int, detections: dict[int, np.ndarray],
@@ -120,9 +135,11 @@ def detector_gaps(t_ns: np.ndarray, boxes: np.ndarray, src: np.ndarray, max_gap_
     return np.asarray(frames, dtype=np.int64), rois
 
 
-def smoother_boxes(flight, sortie: int | None) -> dict[str, dict[int, np.ndarray]]:
+def smoother_boxes(flight, sortie: int | None) -> dict[str, TrackBoxes]:
     """{drone: {capture time ns: the smoothed person's box (x_min, y_min, x_max, y_max)}} from the offline
-    smoother over the whole flight; {} when it cannot run (no detections, ...)."""
+    smoother over the whole flight (in segments: :attr:`reconstruction.track.smoother.SmootherConfig.segment_s`),
+    each a :class:`TrackBoxes` that carries the drone's detections too; {} when it cannot run (no detections, ...).
+    The recordings are read once, without the simulator's true boxes (evaluation only) and without images."""
     import dataclasses
 
     from reconstruction.track.flight import RefineConfig, flight_settings, read_recordings, refine_recordings
@@ -131,13 +148,17 @@ def smoother_boxes(flight, sortie: int | None) -> dict[str, dict[int, np.ndarray
         settings = flight_settings(flight)
         cfg = dataclasses.replace(RefineConfig(), **{k: settings[k] for k in ("person_height_m", "camera_position_sigma_m")
                                                      if settings.get(k) is not None})
-        res = refine_recordings(read_recordings(flight, sortie=sortie), cfg)
+        recs = read_recordings(flight, sortie=sortie, truth_boxes=False)
+        res = refine_recordings(recs, cfg)
     except Exception as e:  # the boxes still come from the detections and the detector
         log.warning("offline smoother not used for the boxes: %s", e)
         return {}
     out = {}
+    by_id = {r.drone_id: r for r in recs}
     for d, b in res.boxes.items():
-        out[d] = {int(t): bx for t, bx in zip(b["frame_t_ns"].tolist(), b["box_px"])}
+        r = by_id[d]
+        dets = {int(m.header.t_measurement_ns): _person_rows(m) for m in r.detections}
+        out[d] = TrackBoxes({int(t): bx for t, bx in zip(b["frame_t_ns"].tolist(), b["box_px"])}, r.detections_topic, dets)
     return out
 
 
@@ -145,7 +166,10 @@ def compute_boxes(sorties: Sequence[Sortie], drone_id: str, frames: FrameTable, 
                   track_boxes: dict[int, np.ndarray] | None, detector_factory: Callable | None,
                   tick: Callable[[float, float, str], None]) -> dict[str, np.ndarray]:
     """One drone's boxes (the cache entry): ``t_ns``, ``box_xywh`` (F, 4), ``source`` (F,)."""
-    topic, dets = read_detections(sorties, drone_id)
+    if isinstance(track_boxes, TrackBoxes):  # the smoother read them already
+        topic, dets = track_boxes.topic, track_boxes.detections
+    else:
+        topic, dets = read_detections(sorties, drone_id)
     boxes, src = choose_boxes(frames.t_ns, frames.width_px, frames.height_px, dets, track_boxes, cfg.min_score)
     missing, rois = detector_gaps(frames.t_ns, boxes, src, cfg.detector_max_gap_s, frames.width_px, frames.height_px)
     tick(0.5, 1.0, f"{drone_id}: {len(frames) - len(missing)}/{len(frames)} frames boxed from {topic} and the track")

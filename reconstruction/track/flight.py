@@ -142,14 +142,16 @@ class DroneRecording:
 
 
 def read_recordings(flight: FlightFolder | str | Path, sortie: int | None = None,
-                    progress: Progress | None = None) -> list[DroneRecording]:
+                    progress: Progress | None = None, truth_boxes: bool = True) -> list[DroneRecording]:
     """Every drone of a flight folder (natural order) -> :class:`DroneRecording` (drones without detections are left
-    out): the whole flight (``sortie=None``: every sortie of a drone, in sortie order) or only sortie ``sortie``."""
+    out): the whole flight (``sortie=None``: every sortie of a drone, in sortie order) or only sortie ``sortie``.
+    ``truth_boxes=False``: the simulator's true person boxes (``sim/keypoints2d_gt``, for :func:`evaluate` only)
+    are not read (``gt_boxes`` stays empty)."""
 
     flight = _folder(flight)
     logs = flight.drone_logs(sortie=sortie)
     out = []
-    topics = ["detections", "sim/detections", "camera_info", "state", "target", "sim/keypoints2d_gt", "gcs/cmd"]
+    topics = ["detections", "sim/detections", "camera_info", "state", "target", "gcs/cmd"] + (["sim/keypoints2d_gt"] if truth_boxes else [])
     for di, (d, sorties) in enumerate(logs.items()):
         name = ", ".join(s.path.name for s in sorties)
         dets = {"detections": [], "sim/detections": []}

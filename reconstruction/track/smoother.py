@@ -30,8 +30,14 @@ each other and to the person, and share the fleet's mean GPS error.
 Why a Rauch-Tung-Striebel smoother (and not a sparse least-squares / factor graph): the model is linear and
 Gaussian with Markov structure, for which the RTS recursion *is* the exact batch (MAP) solution, in
 ``O(N n^3)`` time and ``O(N n^2)`` memory with ``n <= 30`` for 8 drones (about 0.5 ms per step here; 2 x 7 kB
-per step for 8 drones: a 20-minute flight of 8 drones at 10 Hz needs ~1.7 GB, of 3 drones ~0.2 GB); it also gives the marginal
-covariances for free, which a sparse solve would need a separate (selected-inversion) step for. Outliers are
+per step for 8 drones: a 20-minute flight of 8 drones at 10 Hz would need ~1.7 GB at once, of 3 drones ~0.2 GB); it
+also gives the marginal covariances for free, which a sparse solve would need a separate (selected-inversion) step
+for. Long flights are smoothed in overlapping segments (``segment_s`` = 60 s, ``segment_overlap_s`` = 20 s), so
+the ``O(N n^2)`` arrays are those of one segment whatever the flight's length: each segment starts from the
+previous one's forward prediction at its first step (the forward pass is that of the whole flight), runs on 20 s
+past its end (what the backward pass sees of the future) and is cross-faded into the next over 10 s. On a 90 s
+synthetic flight with GPS-grade offsets that changes the track by <= 3 mm (the offsets' 60 s correlation reaches
+past the look-ahead); the frame choices are the same. Outliers are
 handled by iteratively re-weighted smoothing (an M-estimator): every smoothing pass is followed by
 re-weighting each detection by a Huber weight of its Mahalanobis residual against the smoothed state
 (``huber_k``), rejecting those beyond the chi-square gate (``gate_probability``), and choosing, among the
@@ -51,7 +57,6 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 from scipy.stats import chi2
 
 from onboard.tracking.measurement import PositionMeasurement
@@ -91,6 +96,13 @@ class SmootherConfig:
     #: false alarm) and re-initialised on the next frame, as onboard
     reinit_after_rejections: int = 6
     output_rate_hz: float = 20.0  #: regular output grid between the first and last measurement (0 = none)
+    #: bounded memory and time per flight second: a flight longer than ``segment_s + segment_overlap_s`` is smoothed
+    #: in segments of ``segment_s`` seconds, each run on to ``segment_overlap_s`` seconds past its end (the future
+    #: that the backward pass sees) and started from the previous segment's forward prediction at its start (the
+    #: whole past, exactly as the whole-flight forward pass); neighbours are cross-faded over the first half of the
+    #: overlap. 0 = the whole flight at once (memory ~ 2 N n^2 floats for N steps).
+    segment_s: float = 60.0
+    segment_overlap_s: float = 20.0
 
     def __post_init__(self):
         for name in ("velocity_tau_s", "velocity_sigma_m_s", "offset_tau_s", "init_position_var_m2", "huber_k"):
@@ -102,6 +114,9 @@ class SmootherConfig:
             raise SmootherError(f"SmootherConfig.offset_sigma_m must be 3 positive stds (n, e, d), got {self.offset_sigma_m}")
         if self.max_iterations < 0 or self.output_rate_hz < 0:
             raise SmootherError("SmootherConfig.max_iterations and output_rate_hz must be >= 0")
+        if self.segment_s < 0 or (self.segment_s > 0 and not self.segment_overlap_s > 0):
+            raise SmootherError(f"SmootherConfig.segment_s must be >= 0 (0 = whole flight) and segment_overlap_s > 0 "
+                                f"with segments, got {self.segment_s}, {self.segment_overlap_s}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,6 +205,7 @@ class SmoothedTrack:
     frame_d2: np.ndarray
     iterations: int
     offset_sigma_m: np.ndarray  #: (D, 3) the offset priors used
+    segments: int = 1  #: runs of the smoother (:attr:`SmootherConfig.segment_s`)
 
     def position_at(self, t_ns: np.ndarray) -> np.ndarray:
         """Smoothed person position (M, 3) at times t_ns (M,), linear interpolation (held at the ends)."""
@@ -321,22 +337,85 @@ def smooth_track(
         frames_at[step_of[f.t_ns]].append(j)
     on_grid = np.isin(t_steps, grid)
     gate_d2 = float(chi2.ppf(config.gate_probability, 3))
-
-    # the first pass: gated forward filter (choice and weight decided on line), then re-weighted passes
-    choice = np.full(len(frames), -2)  # -2 = decide in the forward pass
-    weight = np.ones(len(frames))
     x0 = np.zeros(n)
     x0[:3] = frames[0].alternatives[int(np.argmax([o.score for o in frames[0].alternatives]))].z_ned_m
     P0 = np.zeros((n, n))
     P0[:3, :3] = config.init_position_var_m2 * I3
     P0[3:6, 3:6] = config.velocity_sigma_m_s**2 * I3
     P0[6:, 6:] = np.diag(sig_b.reshape(-1) ** 2)
+    frame_t = np.array([f.t_ns for f in frames], dtype=np.int64)
+    seg_ns = int(round(config.segment_s * 1e9))
+    ovl_ns = int(round(config.segment_overlap_s * 1e9))
+    N, F = len(t_steps), len(frames)
+    out = {"pos": np.zeros((N, 3)), "vel": np.zeros((N, 3)), "cov": np.zeros((N, 6, 6)), "off": np.zeros((N, D, 3)),
+           "off_cov": np.zeros((N, D, 3, 3)), "fpos": np.zeros((N, 3))}
+    choice_all, weight_all, d2_all = np.full(F, -1), np.zeros(F), np.full(F, np.nan)
+    starts = [t0] if seg_ns <= 0 or t1 - t0 <= seg_ns + ovl_ns else list(range(t0, t1 + 1, seg_ns))
+    fade_ns = ovl_ns // 2
+    prev = None  # (step indices, results) of the previous segment over the cross-fade
+    iterations = 0
+    for k, s0 in enumerate(starts):
+        own_end = starts[k + 1] if k + 1 < len(starts) else t1 + 1  # owned: [s0, own_end)
+        run_end = own_end + ovl_ns if k + 1 < len(starts) else t1 + 1
+        i0, i1 = int(np.searchsorted(t_steps, s0)), int(np.searchsorted(t_steps, run_end))
+        j0, j1 = int(np.searchsorted(frame_t, s0)), int(np.searchsorted(frame_t, run_end))
+        seg_frames = frames[j0:j1]
+        seg_at = [[j - j0 for j in fr if j0 <= j < j1] for fr in frames_at[i0:i1]]
+        xs, Ps, xf, choice, weight, d2, it, x_pred, P_pred = _smooth_run(t_steps[i0:i1], seg_frames, seg_at, model,
+                                                                          x0, P0, config, gate_d2)
+        iterations = max(iterations, it)
+        o1, f1 = int(np.searchsorted(t_steps, own_end)), int(np.searchsorted(frame_t, own_end))
+        sl, ls = slice(i0, o1), slice(0, o1 - i0)
+        rows = {"pos": xs[:, :3], "vel": xs[:, 3:6], "cov": Ps[:, :6, :6], "off": xs[:, 6:].reshape(-1, D, 3),
+                "off_cov": np.stack([Ps[:, 6 + 3 * d: 9 + 3 * d, 6 + 3 * d: 9 + 3 * d] for d in range(D)], axis=1),
+                "fpos": xf[:, :3]}
+        for key, v in rows.items():
+            out[key][sl] = v[ls]
+        if prev is not None:  # cross-fade from the previous segment over [s0, s0 + fade)
+            idx, pv = prev
+            w = ((t_steps[idx] - s0) / max(fade_ns, 1)).clip(0.0, 1.0)
+            for key, v in pv.items():
+                ww = w.reshape((-1,) + (1,) * (v.ndim - 1))
+                out[key][idx] = (1.0 - ww) * v + ww * out[key][idx]
+        choice_all[j0:f1], weight_all[j0:f1], d2_all[j0:f1] = choice[:f1 - j0], weight[:f1 - j0], d2[:f1 - j0]
+        if k + 1 < len(starts):
+            nxt = starts[k + 1]
+            idx = np.arange(o1, int(np.searchsorted(t_steps, nxt + fade_ns)))
+            idx = idx[idx < i1]
+            prev = (idx, {key: v[idx - i0].copy() for key, v in rows.items()})
+            # the next segment starts from this one's forward prediction at its first step (the whole past)
+            x0, P0 = x_pred[o1 - i0].copy(), P_pred[o1 - i0].copy()
+        del xs, Ps, xf, x_pred, P_pred, rows
+    acc = choice_all >= 0
+    log.info("smoother: %d steps, %d frames (%d used, %d rejected), %d drones, %d segment(s), %d re-weighting passes "
+             "(most of a segment)", N, F, int(acc.sum()), int((~acc).sum()), D, len(starts), iterations)
+    return SmoothedTrack(
+        drone_ids=drone_ids, t_ns=t_steps, position_ned_m=out["pos"], velocity_ned_m_s=out["vel"], covariance=out["cov"],
+        offset_ned_m=out["off"], offset_cov_m2=out["off_cov"], filtered_position_ned_m=out["fpos"], on_grid=on_grid,
+        frame_t_ns=frame_t, frame_drone=np.array([f.drone for f in frames]), frame_choice=choice_all,
+        frame_weight=np.where(acc, weight_all, 0.0), frame_d2=d2_all, iterations=iterations, offset_sigma_m=sig_b,
+        segments=len(starts),
+    )  # fmt: skip
+
+
+def _smooth_run(t_steps, frames, frames_at, model, x0, P0, config, gate_d2):
+    """The robust smoother over one run of steps (the whole flight or a segment) from the prior (x0, P0) at its
+    first step: a gated forward pass, then re-weighted passes until the choices and weights settle. Returns
+    (xs, Ps, x_f, choice, weight, d2, passes, x_pred, P_pred) of the last pass."""
+    step_of = {int(t): i for i, t in enumerate(t_steps)}
+    n = model.n
+    P_init = np.zeros((n, n))  # what the first pass re-initialises the person's state with
+    P_init[:3, :3] = config.init_position_var_m2 * I3
+    P_init[3:6, 3:6] = config.velocity_sigma_m_s**2 * I3
+    choice = np.full(len(frames), -2)  # -2 = decide in the forward pass
+    weight = np.ones(len(frames))
     it = 0
     while True:
-        xs, Ps, xf, d2_out = _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, config, gate_d2)
+        xs, Ps, xf, d2_out, x_pred, P_pred = _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, P_init,
+                                                  config, gate_d2)
         new_choice, new_weight, d2 = _reweight(frames, xs, Ps, step_of, n, config, gate_d2)
         if it > 0:
-            changed = np.any(new_choice != choice) or np.max(np.abs(new_weight - weight)) > 1e-3
+            changed = bool(len(frames)) and (np.any(new_choice != choice) or np.max(np.abs(new_weight - weight)) > 1e-3)
         else:
             changed = True
         if it >= config.max_iterations or not changed:
@@ -345,21 +424,10 @@ def smooth_track(
         it += 1
     if it >= config.max_iterations and changed:
         log.info("smoother: re-weighting stopped after %d passes without full convergence", it)
-    acc = choice >= 0
-    log.info("smoother: %d steps, %d frames (%d used, %d rejected), %d drones, %d re-weighting passes",
-             len(t_steps), len(frames), int(acc.sum()), int((~acc).sum()), D, it)
-    off = xs[:, 6:].reshape(len(t_steps), D, 3)
-    off_cov = np.stack([Ps[:, 6 + 3 * d: 9 + 3 * d, 6 + 3 * d: 9 + 3 * d] for d in range(D)], axis=1)
-    return SmoothedTrack(
-        drone_ids=drone_ids, t_ns=t_steps, position_ned_m=xs[:, :3].copy(), velocity_ned_m_s=xs[:, 3:6].copy(),
-        covariance=Ps[:, :6, :6].copy(), offset_ned_m=off, offset_cov_m2=off_cov, filtered_position_ned_m=xf[:, :3].copy(),
-        on_grid=on_grid, frame_t_ns=np.array([f.t_ns for f in frames], dtype=np.int64),
-        frame_drone=np.array([f.drone for f in frames]), frame_choice=choice.copy(), frame_weight=np.where(acc, weight, 0.0),
-        frame_d2=d2, iterations=it, offset_sigma_m=sig_b,
-    )  # fmt: skip
+    return xs, Ps, xf, choice, weight, d2, it, x_pred, P_pred
 
 
-def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2):
+def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, P_init, cfg, gate_d2):
     """One forward filter + RTS backward pass. ``choice`` -2 entries are decided (gated) in place."""
     N, n = len(t_steps), model.n
     x_pred = np.zeros((N, n))
@@ -388,7 +456,7 @@ def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2
                     P = P.copy()
                     P[:6, :] = 0.0
                     P[:, :6] = 0.0
-                    P[:6, :6] = P0[:6, :6]
+                    P[:6, :6] = P_init[:6, :6]
                     rejections = 0
                     reinits += 1
                 best = None
@@ -408,8 +476,7 @@ def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2
             H, R, z = _frame_HR(fr, int(choice[j]), n, cfg)
             R = R / weight[j]
             S = H @ P @ H.T + R
-            c = cho_factor(0.5 * (S + S.T))
-            K = cho_solve(c, H @ P).T
+            K = np.linalg.solve(0.5 * (S + S.T), H @ P).T  # S symmetric: (S^-1 H P)^T = P H^T S^-1
             x = x + K @ (z - H @ x)
             IKH = np.eye(n) - K @ H
             P = IKH @ P @ IKH.T + K @ R @ K.T
@@ -417,17 +484,17 @@ def _rts(t_steps, frames, frames_at, choice, weight, model, x0, P0, cfg, gate_d2
         x_f[k], P_f[k] = x, P
     xs = x_f.copy()
     Ps = P_f  # overwritten from the end: Ps[k + 1] is smoothed when step k is
+    eps = 1e-12 * np.eye(n)
     for k in range(N - 2, -1, -1):
         Pp = P_pred[k + 1]
         F, _ = model((t_steps[k + 1] - t_steps[k]) * NS)
-        c = cho_factor(Pp + 1e-12 * np.eye(n))
-        C = cho_solve(c, F @ P_f[k]).T  # P_f F^T Pp^-1
+        C = np.linalg.solve(Pp + eps, F @ P_f[k]).T  # P_f F^T Pp^-1
         xs[k] = x_f[k] + C @ (xs[k + 1] - x_pred[k + 1])
         Pk = P_f[k] + C @ (Ps[k + 1] - Pp) @ C.T
         Ps[k] = 0.5 * (Pk + Pk.T)
     if reinits:
         log.info("smoother: first pass re-initialised the person track %d time(s)", reinits)
-    return xs, Ps, x_f, d2_out
+    return xs, Ps, x_f, d2_out, x_pred, P_pred
 
 
 def _reweight(frames, xs, Ps, step_of, n, cfg, gate_d2):
