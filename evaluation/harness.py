@@ -155,6 +155,7 @@ def render_keypoints(cap: Capture, T_world_cam_frames: list[np.ndarray], t_ns: n
     pin = PinholeCamera.from_config(cfg.camera)
     cams = []
     render_s = kp_s = 0.0
+    errs, heights = [], []
     n_frames = 0
     for ci, cam in enumerate(cap.cameras):
         if cam.width_px != pin.width_px or cam.height_px != pin.height_px or not np.isclose(cam.K[0, 0, 0], pin.fx_px):
@@ -167,6 +168,7 @@ def render_keypoints(cap: Capture, T_world_cam_frames: list[np.ndarray], t_ns: n
         kp = np.full((F, len(models), 17, 3), np.nan)
         kp[..., 2] = 0.0
         box = np.full((F, 4), np.nan)
+        uv_true = np.full((F, 17, 2), np.nan)
         tracks = [{} for _ in models]
         for b0 in range(0, F, kc.batch_size):
             ids, imgs = [], []
@@ -177,6 +179,7 @@ def render_keypoints(cap: Capture, T_world_cam_frames: list[np.ndarray], t_ns: n
                     continue
                 x0, y0, x1, y1 = fr.gt.box_px
                 box[f] = (x0, y0, x1 - x0, y1 - y0)
+                uv_true[f] = fr.gt.uv_px
                 ids.append(f)
                 imgs.append(fr.image)
             t1 = time.process_time()
@@ -197,12 +200,21 @@ def render_keypoints(cap: Capture, T_world_cam_frames: list[np.ndarray], t_ns: n
             uv = np.nan_to_num(kp[..., :2])
             conf = np.where(np.isfinite(kp[..., 0]), np.nan_to_num(kp[..., 2]), 0.0)
             dets = tuple(kc.models)
+        err = np.linalg.norm(uv[:, 0] - uv_true, axis=-1) / box[:, 3:4]  # (F, 17) fraction of the box height
+        ok = np.isfinite(err) & (conf[:, 0] > 0)
+        errs.append(err[ok])
+        heights.append(box[np.isfinite(box[:, 3]), 3])
         stats.setdefault("frames_without_person", 0)
         stats["frames_without_person"] += int(np.sum(~np.all(np.isfinite(box), axis=1)))
         cams.append(dataclasses.replace(cam, keypoints_px=uv, confidence=conf, detectors=dets))
     stats["render_ms_per_frame"] = 1e3 * render_s / max(n_frames, 1)
     stats["keypoints_ms_per_frame"] = 1e3 * kp_s / max(n_frames, 1)
     stats["rendered_frames"] = n_frames
+    e, h = np.concatenate(errs), np.concatenate(heights)
+    # the fused keypoints against the true joints' projections (joint definitions differ a little: not all model error)
+    stats["keypoint_err_median_frac_of_height"] = float(np.median(e)) if e.size else float("nan")
+    stats["keypoint_err_p90_frac_of_height"] = float(np.percentile(e, 90)) if e.size else float("nan")
+    stats["person_height_px_median"] = float(np.median(h)) if h.size else float("nan")
     return Capture(cams, meta={**cap.meta, "keypoints": "models", "models": list(kc.models)})
 
 
@@ -223,7 +235,7 @@ def run_harness(cfg: HarnessConfig, progress: bool = True, models: list | None =
     metrics["keypoints_source"] = "models:" + "+".join(cfg.detect.models) if cfg.keypoints == "models" else "sim"
     metrics["position_grade"] = cfg.position_grade if cfg.pose_errors == "flight" else "white"
     metrics["pose_errors"] = cfg.pose_errors
-    metrics.update({k: (round(v, 2) if isinstance(v, float) else v) for k, v in stats.items()})
+    metrics.update({k: (round(v, 4) if isinstance(v, float) else v) for k, v in stats.items()})
     if cfg.out:
         write_outputs(cfg.out, cfg, metrics, res, cap, t_grid, gt, cfg.export)
     return metrics
