@@ -93,8 +93,9 @@ class HarnessConfig:
     person: PersonConfig = dataclasses.field(default_factory=PersonConfig)
     #: the keypoint models, their threads and fusion (as ``skycap process``)
     detect: KeypointsConfig = dataclasses.field(default_factory=KeypointsConfig)
-    #: simulated 2D noise, px (keypoints = "sim"); -1 = the simulated detector's (SimDetectorConfig) at this scale
-    sim_noise_px: float = -1.0
+    #: simulated 2D (keypoints = "sim"): the simulator's simulated detector's noise, outlier, swap and miss rates
+    #: (its noise at the person's expected height in this camera; its time correlation and occlusion are not modelled)
+    sim_detector: SimDetectorConfig = dataclasses.field(default_factory=SimDetectorConfig)
     #: orbit geometry and the pose-error numbers (synth.flight_errors is filled from the grade by :func:`resolve`)
     synth: SynthConfig = dataclasses.field(default_factory=_harness_synth)
     fit: FitConfig = dataclasses.field(default_factory=FitConfig)
@@ -132,9 +133,9 @@ def resolve(cfg: HarnessConfig) -> HarnessConfig:
     if cfg.pose_errors == "flight":
         s.flight_errors = flight_errors_from_estimator(estimator_for_grade(cfg.position_grade), s.flight_errors.margin_s)
     if cfg.keypoints == "sim":
-        sd = SimDetectorConfig()
+        sd = cfg.sim_detector
         height_px = cam.fx_px * _PERSON_HEIGHT_M / math.hypot(s.radius_m, s.altitude_m)
-        s.noise_px = math.hypot(sd.noise_px, sd.noise_frac_of_height * height_px) if cfg.sim_noise_px < 0 else cfg.sim_noise_px
+        s.noise_px = math.hypot(sd.noise_px, sd.noise_frac_of_height * height_px)
         s.outlier_rate, s.swap_rate, s.miss_rate = sd.outlier_prob, sd.swap_prob, sd.miss_prob
     return cfg
 
