@@ -88,6 +88,9 @@ class HarnessConfig:
     pose_errors: str = "flight"
     #: "rtk" or "gps": simulator.config.POSITION_GRADES (with pose_errors = "flight")
     position_grade: str = "rtk"
+    #: the estimator the grade's preset is applied to (default: the simulator's defaults; e.g.
+    #: ``estimator.att_noise_std_deg=0`` takes the attitude error out, to measure its share)
+    estimator: EstimatorConfig = dataclasses.field(default_factory=EstimatorConfig)
     #: the simulator's camera (resolution, field of view, rate, blur, noise) and person (Anny shape and outfit)
     camera: CameraConfig = dataclasses.field(default_factory=_anny_camera)
     person: PersonConfig = dataclasses.field(default_factory=PersonConfig)
@@ -131,7 +134,8 @@ def resolve(cfg: HarnessConfig) -> HarnessConfig:
     s.width_px, s.height_px, s.focal_px, s.camera_rate_hz = cam.width_px, cam.height_px, cam.fx_px, cfg.camera.rate_hz
     s.pose_errors = cfg.pose_errors
     if cfg.pose_errors == "flight":
-        s.flight_errors = flight_errors_from_estimator(estimator_for_grade(cfg.position_grade), s.flight_errors.margin_s)
+        s.flight_errors = flight_errors_from_estimator(estimator_for_grade(cfg.position_grade, cfg.estimator),
+                                                      s.flight_errors.margin_s)
     if cfg.keypoints == "sim":
         sd = cfg.sim_detector
         height_px = cam.fx_px * _PERSON_HEIGHT_M / math.hypot(s.radius_m, s.altitude_m)

@@ -28,6 +28,8 @@ def test_grades_come_from_the_simulator_presets():
     assert grade_overrides("rtk") == ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
     assert grade_overrides("gps") == []
     assert flight_errors_from_estimator(estimator_for_grade("rtk"), 5.0).margin_s == 5.0
+    no_att = resolve(load_config(HarnessConfig, None, ["estimator.att_noise_std_deg=0"])).synth.flight_errors
+    assert no_att.att_noise_std_deg == 0 and no_att.pos_bias_std_xy_m == 0.02  # the grade on top of the base
 
 
 def test_resolve_takes_the_simulators_camera_and_detector():
