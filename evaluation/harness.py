@@ -7,7 +7,9 @@ The same orbit geometry, fit and metrics as the multiview harness (:mod:`reconst
 * **Drone poses** (``pose_errors``): ``"flight"`` (default) = the simulator's estimator error model
   (:class:`simulator.config.EstimatorConfig`; :class:`simulator.vehicle.environment.EstimatorErrorModel` on a
   simulated flight): per drone a Gauss-Markov position bias (horizontal / vertical std, correlation time 60 s) plus
-  white position noise, a Gauss-Markov attitude error (1 deg per axis, correlation time 1 s), the processes in their
+  white position noise, a Gauss-Markov attitude error (1 deg per axis, correlation time 1 s; by default its yaw alone
+  turns the camera, as on the product's gimbal-stabilised drones whose tilt the gimbal reports:
+  ``synth.flight_errors.attitude_axes = "all"`` for a body-fixed camera), the processes in their
   stationary state (the drones have flown ``synth.flight_errors.margin_s`` before the clip), velocity reported, no
   angular velocity (as the flight reader gives the fit). ``position_grade`` picks the estimator's preset,
   ``"rtk"`` (default, cm-level bias) or ``"gps"`` (m-level), from :data:`simulator.config.POSITION_GRADES` -- the
@@ -118,10 +120,11 @@ class HarnessConfig:
         return self
 
 
-def flight_errors_from_estimator(est: EstimatorConfig, margin_s: float = 60.0) -> FlightPoseErrors:
-    """The harness's pose-error model with the simulator's estimator numbers (same field names)."""
-    names = [f.name for f in dataclasses.fields(FlightPoseErrors) if f.name != "margin_s"]
-    return FlightPoseErrors(**{n: float(getattr(est, n)) for n in names}, margin_s=margin_s)
+def flight_errors_from_estimator(est: EstimatorConfig, margin_s: float = 60.0, attitude_axes: str = "yaw") -> FlightPoseErrors:
+    """The harness's pose-error model with the simulator's estimator numbers (the fields of the same names)."""
+    names = {f.name for f in dataclasses.fields(EstimatorConfig)}
+    own = [f.name for f in dataclasses.fields(FlightPoseErrors) if f.name in names]
+    return FlightPoseErrors(**{n: float(getattr(est, n)) for n in own}, margin_s=margin_s, attitude_axes=attitude_axes)
 
 
 def resolve(cfg: HarnessConfig) -> HarnessConfig:
@@ -135,7 +138,7 @@ def resolve(cfg: HarnessConfig) -> HarnessConfig:
     s.pose_errors = cfg.pose_errors
     if cfg.pose_errors == "flight":
         s.flight_errors = flight_errors_from_estimator(estimator_for_grade(cfg.position_grade, cfg.estimator),
-                                                      s.flight_errors.margin_s)
+                                                      s.flight_errors.margin_s, s.flight_errors.attitude_axes)
     if cfg.keypoints == "sim":
         sd = cfg.sim_detector
         height_px = cam.fx_px * _PERSON_HEIGHT_M / math.hypot(s.radius_m, s.altitude_m)

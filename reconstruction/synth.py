@@ -22,7 +22,9 @@ Pipeline (:func:`synthesize_capture`):
    ``simulator.config.EstimatorConfig`` at RTK or GPS grade): per drone a position bias, first-order Gauss-Markov
    per axis (horizontal / vertical std, correlation time ``pos_bias_time_constant_s``, 60 s by default), plus white
    position noise per pose sample, and an attitude error per axis, Gauss-Markov (std ``att_noise_std_deg``,
-   correlation time ``att_noise_time_constant_s``), applied as ``R_est = R_true @ exp(err)`` as the simulator does;
+   correlation time ``att_noise_time_constant_s``), applied as ``R_est = R_true @ exp(err)`` as the simulator does
+   (``attitude_axes = "all"``: a body-fixed camera) or, by default (``"yaw"``), only its yaw part about the world's
+   down axis: a gimbal-stabilised camera's tilt comes from the gimbal, its pan from the vehicle's yaw estimate;
    the processes start in their stationary state ``margin_s`` before the clip (the drones have flown a while, as on
    a real flight: :func:`skycap.gauss_markov.gauss_markov_series`). With ``pose_errors = "flight"`` the drones report
    velocity (noise ``vel_noise_std_m_s`` per axis) but no angular velocity, as the flight reader gives the fit.
@@ -79,6 +81,10 @@ class FlightPoseErrors:
     att_noise_std_deg: float = 0.0
     att_noise_time_constant_s: float = 1.0
     vel_noise_std_m_s: float = 0.0
+    #: which camera axes the attitude error turns: "yaw" (a gimbal-stabilised camera, as the product flies: its tilt
+    #: comes from the gimbal, its pan from the vehicle's yaw estimate -- the flight reader takes only the yaw from
+    #: the estimated attitude) or "all" (a camera fixed to the body: roll, pitch and yaw errors)
+    attitude_axes: str = "yaw"
     #: the processes start (stationary) this long before the clip: the drones have been flying
     margin_s: float = 60.0
 
@@ -88,7 +94,7 @@ class FlightPoseErrors:
 
     def rot_sigma_deg(self) -> float:
         """RMS 3D attitude error, degrees (the capture's ``rot_sigma_deg``)."""
-        return float(np.sqrt(3.0) * self.att_noise_std_deg)
+        return float((1.0 if self.attitude_axes == "yaw" else np.sqrt(3.0)) * self.att_noise_std_deg)
 
 
 @dataclasses.dataclass
@@ -178,12 +184,18 @@ def _pose_error(rng: np.random.Generator, t_s: np.ndarray, rms: float, drift_fra
 def flight_pose_errors(rng: np.random.Generator, tp_s: np.ndarray, fe: FlightPoseErrors) -> tuple[np.ndarray, np.ndarray]:
     """One drone's (position error (P, 3) NED m, attitude error (P, 3) rad rotation vector) at the pose times ``tp_s``
     (P,) seconds from the clip's start, under the flight's model (module doc, 5): Gauss-Markov bias + white position
-    noise, Gauss-Markov attitude error, both run from ``fe.margin_s`` before the clip in their stationary state."""
+    noise, Gauss-Markov attitude error, both run from ``fe.margin_s`` before the clip in their stationary state. The
+    attitude error is a rotation vector in the camera frame (``attitude_axes = "all"``) or about the world's down axis
+    only (``"yaw"``: the pan of a gimbal-stabilised camera; its x and y are 0)."""
     t = np.concatenate([[tp_s[0] - max(fe.margin_s, 0.0)], tp_s])
     sig_p = np.array([fe.pos_bias_std_xy_m, fe.pos_bias_std_xy_m, fe.pos_bias_std_z_m])
     bias = gauss_markov_series(t, fe.pos_bias_time_constant_s, sig_p, rng)[1:]
     white = rng.normal(0.0, fe.pos_noise_std_m, (len(tp_s), 3))
     att = gauss_markov_series(t, fe.att_noise_time_constant_s, np.radians(fe.att_noise_std_deg), rng)[1:]
+    if fe.attitude_axes == "yaw":
+        att[:, :2] = 0.0
+    elif fe.attitude_axes != "all":
+        raise ConfigError(f"flight_errors.attitude_axes={fe.attitude_axes!r}; use 'yaw' or 'all'")
     return bias + white, att
 
 
@@ -262,9 +274,12 @@ def synthesize_capture(
              np.full_like(ang, -cfg.altitude_m)], axis=-1)  # fmt: skip
         wob = _smooth_error(rng, tp_s, np.radians(cfg.aim_wobble_deg) * np.linalg.norm(pos - hip_p, axis=-1).mean())
         T_true = look_at_T_world_cam(pos, centre_p + wob)  # gimbal tracks the filtered person estimate
-        if cfg.pose_errors == "flight":  # the simulator's estimator: R_est = R_true @ exp(err)
+        if cfg.pose_errors == "flight":  # the simulator's estimator: R_est = R_true @ exp(err), or the pan error alone
             dp, dr = flight_pose_errors(rng_flight, tp_s, cfg.flight_errors)
-            R_est = T_true[:, :3, :3] @ Rotation.from_rotvec(dr).as_matrix()
+            if cfg.flight_errors.attitude_axes == "yaw":  # the vehicle's yaw error turns the camera about world down
+                R_est = Rotation.from_rotvec(dr).as_matrix() @ T_true[:, :3, :3]
+            else:
+                R_est = T_true[:, :3, :3] @ Rotation.from_rotvec(dr).as_matrix()
         else:  # drone estimate = truth + bias/drift
             dp = _pose_error(rng, tp_s, cfg.camera_pos_noise_m, cfg.camera_noise_drift_fraction)
             dr = _pose_error(rng, tp_s, np.radians(cfg.camera_rot_noise_deg), cfg.camera_noise_drift_fraction)
