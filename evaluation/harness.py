@@ -82,6 +82,9 @@ class HarnessConfig:
     #: output frames at the camera rate (camera.rate_hz; 0 = all): 25 = a 2.5 s clip at 10 Hz
     frames: int = 100
     start: int = 0
+    #: seconds of the flight before and after the scored clip (where the motion has them) that the cameras film and
+    #: the fit sees, unscored: a clip cut from a longer flight (0 = the fit sees the clip alone, as the old harness)
+    context_s: float = 0.0
     seed: int = 0
     export: bool = True
     #: "models" (the keypoint models on rendered images) or "sim" (simulated 2D)
@@ -232,18 +235,23 @@ def run_harness(cfg: HarnessConfig, progress: bool = True, models: list | None =
     cfg = resolve(cfg)
     J, t_ns, fps = load_motion(cfg.motion)
     idx = clip_indices(len(J), fps, cfg.synth.camera_rate_hz, cfg.start, cfg.frames, cfg.motion)
-    lo, hi = idx[0], idx[-1] + 1
+    ctx = max(int(round(cfg.context_s * cfg.synth.camera_rate_hz)), 0)  # the flight goes on around the clip
+    start_all = max(cfg.start - ctx, 0)
+    idx_all = clip_indices(len(J), fps, cfg.synth.camera_rate_hz, start_all, cfg.start - start_all + len(idx) + ctx,
+                           cfg.motion)
+    scored = np.isin(idx_all, idx)
+    lo, hi = idx_all[0], idx_all[-1] + 1
     cap, truth = synthesize_capture(J[lo:hi], t_ns[lo:hi], cfg.synth, seed=cfg.seed)
     stats: dict = {}
     if cfg.keypoints == "models":
         cap = render_keypoints(cap, truth.T_world_cam_true_frames, t_ns[lo:hi], J[lo:hi], cfg, models, stats)
-    t_grid, gt = t_ns[idx], J[idx]
-    res, metrics = score_capture(cap, truth, t_grid, gt, cfg.fit, cfg.motion, progress)
-    metrics["clip_s"] = float((t_grid[-1] - t_grid[0]) * 1e-9)
+    t_grid = t_ns[idx_all]
+    res, metrics = score_capture(cap, truth, t_grid, J[idx], cfg.fit, cfg.motion, progress, scored)
+    metrics["clip_s"] = float((t_ns[idx[-1]] - t_ns[idx[0]]) * 1e-9)
     metrics["keypoints_source"] = "models:" + "+".join(cfg.detect.models) if cfg.keypoints == "models" else "sim"
     metrics["position_grade"] = cfg.position_grade if cfg.pose_errors == "flight" else "white"
     metrics["pose_errors"] = cfg.pose_errors
     metrics.update({k: (round(v, 4) if isinstance(v, float) else v) for k, v in stats.items()})
     if cfg.out:
-        write_outputs(cfg.out, cfg, metrics, res, cap, t_grid, gt, cfg.export)
+        write_outputs(cfg.out, cfg, metrics, res, cap, t_grid, J[idx_all], cfg.export)
     return metrics

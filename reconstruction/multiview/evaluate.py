@@ -145,13 +145,17 @@ def clip_indices(num_frames: int, fps: float, camera_rate_hz: float, start: int,
 
 
 def score_capture(cap, truth: SynthTruth, t_grid: np.ndarray, gt: np.ndarray, fit: FitConfig, motion: str = "",
-                  progress: bool = True) -> tuple[FitResult, dict]:
-    """Fit ``cap`` at the output times ``t_grid`` and score it against ``gt`` (T, 17, 3): (fit result, metrics without
-    the sources)."""
+                  progress: bool = True, scored: np.ndarray | None = None) -> tuple[FitResult, dict]:
+    """Fit ``cap`` at the output times ``t_grid`` (T,) and score it against ``gt`` (S, 17, 3), the truth at the scored
+    times ``t_grid[scored]`` (``scored``: (T,) bool, default all; the rest is context the fit sees but the metrics
+    leave out): (fit result over all of ``t_grid``, metrics without the sources)."""
     res = fit_capture(cap, t_grid, fit, progress=progress)
-    metrics = {"motion": str(motion), "method": fit.method, "frames": int(len(t_grid)), "cameras": cap.num_cameras,
-               "fit_seconds": res.fit_seconds, "fit_frames_per_s": len(t_grid) / res.fit_seconds}  # fmt: skip
-    metrics.update(compute_metrics(res, gt))
+    scored = np.ones(len(t_grid), bool) if scored is None else np.asarray(scored, bool)
+    n = int(scored.sum())
+    metrics = {"motion": str(motion), "method": fit.method, "frames": n, "cameras": cap.num_cameras,
+               "context_frames": int(len(t_grid) - n), "fit_seconds": res.fit_seconds,
+               "fit_frames_per_s": len(t_grid) / res.fit_seconds}  # fmt: skip
+    metrics.update(compute_metrics(dataclasses.replace(res, joints_ned=res.joints_ned[scored], t_ns=res.t_ns[scored]), gt))
     metrics.update(camera_errors(res, cap, truth))
     return res, metrics
 

@@ -109,10 +109,12 @@ def test_harness_runs_the_models_on_rendered_frames(cmu_dir, tmp_path):
     """A 0.3 s clip, 2 drones, the real renderer (Anny) and keypoint models, a short fit: every frame sees the
     person, the models' keypoints place the joints within a person's size, the outputs name the sources."""
     cfg = HarnessConfig(motion=str(cmu_dir / "002" / "002_01.bvh"), out=str(tmp_path / "h"), frames=3, export=False,
+                        start=1, context_s=0.1,
                         synth=SynthConfig(pose_errors="flight", drones=2))
     cfg.fit.iters = 40
     m = run_harness(cfg, progress=False)
     assert m["keypoints_source"] == "models:movenet_lightning+blazepose_full" and m["position_grade"] == "rtk"
+    assert m["frames"] == 3 and m["context_frames"] == 2  # one frame of flight before and after the scored clip
     assert m["frames_without_person"] == 0 and m["rendered_frames"] >= 2 * 2
     assert 0 < m["keypoint_err_median_frac_of_height"] < 0.1 and m["person_height_px_median"] > 30
     assert m["mpjpe_mm"] < 300 and m["w_mpjpe_mm"] < 800 and m["camera_pos_err_m_before"] < 0.2
