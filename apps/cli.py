@@ -31,6 +31,7 @@ COMMAND_MODULES = (
     "comms.cli",
     "reconstruction.cli",
     "reconstruction.keypoints.cli",
+    "evaluation.cli",
     "apps.refine",
 )
 
@@ -51,6 +52,7 @@ COMMANDS_OF_MODULE = {
     "comms.cli": ("keys",),
     "reconstruction.cli": ("eval", "process", "reconstruct"),
     "reconstruction.keypoints.cli": ("keypoints",),
+    "evaluation.cli": ("harness",),
     "apps.refine": ("refine",),
 }
 

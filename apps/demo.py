@@ -104,6 +104,7 @@ from flightdata.recorder import Recorder
 from groundstation.fleet import FleetClient, make_orbit_plan
 from onboard.orbit import evenly_spaced_phases
 from shared_msgs import SimTruth, keys
+from simulator.config import grade_overrides
 from simulator.scene.person import PersonMotionConfig, load_bvh_motion
 from skycap.childproc import ProcessSupervisor
 from skycap.config import ConfigError, add_config_args, config_from_args, save_config
@@ -422,7 +423,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
     if not px4:  # the built-in simulator's ports and estimator (PX4 SITL has its own: SIH's GPS and PX4's EKF)
         sim_set += [f"ports.offboard_base={cfg.mavlink_base}", "ports.local_base=0", "ports.gcs_port=0"]
         if (cfg.track.rtk if track else cfg.rtk):
-            sim_set += ["estimator.pos_bias_std_xy_m=0.02", "estimator.pos_bias_std_z_m=0.03"]
+            sim_set += grade_overrides("rtk")  # simulator.config.POSITION_GRADES
     if cfg.orbit.spawn_under_slots:  # the built-in vehicles' spawn points, PX4's homes
         spawn = ", ".join(f"[{n}, {e}]" for n, e in _spawn_positions(cfg, phases))
         sim_set.append(f"vehicles.spawn_ne_m=[{spawn}]")

@@ -17,7 +17,18 @@ Pipeline (:func:`synthesize_capture`):
    left/right swapped, with ``miss_rate`` a keypoint is missing (confidence 0); points outside the
    image are missing. Confidences: inliers U(0.5, 1), outliers U(0.2, 0.8) (a detector is often
    confident about its mistakes). ``detectors`` independent detectors per camera.
-5. Drone self-pose estimates: true pose + error; ``camera_pos_noise_m`` and ``camera_rot_noise_deg``
+5. Drone self-pose estimates: true pose + error. ``pose_errors = "flight"``: the simulator's estimator error model
+   (``flight_errors``, :class:`FlightPoseErrors`; :mod:`evaluation.harness` fills it from
+   ``simulator.config.EstimatorConfig`` at RTK or GPS grade): per drone a position bias, first-order Gauss-Markov
+   per axis (horizontal / vertical std, correlation time ``pos_bias_time_constant_s``, 60 s by default), plus white
+   position noise per pose sample, and an attitude error per axis, Gauss-Markov (std ``att_noise_std_deg``,
+   correlation time ``att_noise_time_constant_s``), applied as ``R_est = R_true @ exp(err)`` as the simulator does
+   (``attitude_axes = "all"``: a body-fixed camera) or, by default (``"yaw"``), only its yaw part about the world's
+   down axis: a gimbal-stabilised camera's tilt comes from the gimbal, its pan from the vehicle's yaw estimate;
+   the processes start in their stationary state ``margin_s`` before the clip (the drones have flown a while, as on
+   a real flight: :func:`skycap.gauss_markov.gauss_markov_series`). With ``pose_errors = "flight"`` the drones report
+   velocity (noise ``vel_noise_std_m_s`` per axis) but no angular velocity, as the flight reader gives the fit.
+   ``pose_errors = "white"`` (the original harness): ``camera_pos_noise_m`` and ``camera_rot_noise_deg``
    are the RMS 3D error (position norm, rotation angle). A fraction ``camera_noise_drift_fraction`` of
    the error variance is a constant bias + slow drift (period 5-20 s) per axis, the rest is white
    noise per pose sample (GNSS/IMU jitter). Default 0 (white): a bias common to all drones cannot be
@@ -44,10 +55,46 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from reconstruction.capture import CameraCapture, Capture, CaptureError, interpolate_poses
+from skycap.config import ConfigError
 from skycap.frames import intrinsics_matrix, make_T, project_points
+from skycap.gauss_markov import gauss_markov_series
 from skycap.skeleton import COCO17_FLIP
 
-__all__ = ["SynthConfig", "SynthTruth", "synthesize_capture", "true_rates", "interpolate_joints", "look_at_T_world_cam"]
+__all__ = ["SynthConfig", "FlightPoseErrors", "POSE_ERRORS", "flight_pose_errors", "SynthTruth", "synthesize_capture", "true_rates", "interpolate_joints", "look_at_T_world_cam"]
+
+
+#: how the drones' pose estimates err: "white" (white noise, the original harness) or "flight" (the simulator's
+#: estimator: Gauss-Markov position bias and attitude error, :class:`FlightPoseErrors`)
+POSE_ERRORS = ("white", "flight")
+
+
+@dataclasses.dataclass
+class FlightPoseErrors:
+    """The flight's pose-error model (``pose_errors = "flight"``); field names and meanings as
+    ``simulator.config.EstimatorConfig``, whose values :mod:`evaluation.harness` copies in (the layers keep
+    reconstruction/ from importing the simulator). Zero = no such error."""
+
+    pos_bias_std_xy_m: float = 0.0
+    pos_bias_std_z_m: float = 0.0
+    pos_bias_time_constant_s: float = 60.0
+    pos_noise_std_m: float = 0.0
+    att_noise_std_deg: float = 0.0
+    att_noise_time_constant_s: float = 1.0
+    vel_noise_std_m_s: float = 0.0
+    #: which camera axes the attitude error turns: "yaw" (a gimbal-stabilised camera, as the product flies: its tilt
+    #: comes from the gimbal, its pan from the vehicle's yaw estimate -- the flight reader takes only the yaw from
+    #: the estimated attitude) or "all" (a camera fixed to the body: roll, pitch and yaw errors)
+    attitude_axes: str = "yaw"
+    #: the processes start (stationary) this long before the clip: the drones have been flying
+    margin_s: float = 60.0
+
+    def pos_sigma_m(self) -> float:
+        """RMS 3D position error (the capture's ``pos_sigma_m``)."""
+        return float(np.sqrt(2 * self.pos_bias_std_xy_m**2 + self.pos_bias_std_z_m**2 + 3 * self.pos_noise_std_m**2))
+
+    def rot_sigma_deg(self) -> float:
+        """RMS 3D attitude error, degrees (the capture's ``rot_sigma_deg``)."""
+        return float((1.0 if self.attitude_axes == "yaw" else np.sqrt(3.0)) * self.att_noise_std_deg)
 
 
 @dataclasses.dataclass
@@ -70,6 +117,9 @@ class SynthConfig:
     camera_pos_noise_m: float = 0.5
     camera_rot_noise_deg: float = 2.0
     camera_noise_drift_fraction: float = 0.0
+    #: "white" (the camera_*_noise fields above) or "flight" (``flight_errors``); see the module doc, 5
+    pose_errors: str = "white"
+    flight_errors: FlightPoseErrors = dataclasses.field(default_factory=FlightPoseErrors)
     imu_rates: bool = True
     camera_vel_noise_mps: float = 0.1
     camera_rate_noise_degps: float = 0.2
@@ -131,6 +181,24 @@ def _pose_error(rng: np.random.Generator, t_s: np.ndarray, rms: float, drift_fra
     return _smooth_error(rng, t_s, rms * np.sqrt(f)) + white
 
 
+def flight_pose_errors(rng: np.random.Generator, tp_s: np.ndarray, fe: FlightPoseErrors) -> tuple[np.ndarray, np.ndarray]:
+    """One drone's (position error (P, 3) NED m, attitude error (P, 3) rad rotation vector) at the pose times ``tp_s``
+    (P,) seconds from the clip's start, under the flight's model (module doc, 5): Gauss-Markov bias + white position
+    noise, Gauss-Markov attitude error, both run from ``fe.margin_s`` before the clip in their stationary state. The
+    attitude error is a rotation vector in the camera frame (``attitude_axes = "all"``) or about the world's down axis
+    only (``"yaw"``: the pan of a gimbal-stabilised camera; its x and y are 0)."""
+    t = np.concatenate([[tp_s[0] - max(fe.margin_s, 0.0)], tp_s])
+    sig_p = np.array([fe.pos_bias_std_xy_m, fe.pos_bias_std_xy_m, fe.pos_bias_std_z_m])
+    bias = gauss_markov_series(t, fe.pos_bias_time_constant_s, sig_p, rng)[1:]
+    white = rng.normal(0.0, fe.pos_noise_std_m, (len(tp_s), 3))
+    att = gauss_markov_series(t, fe.att_noise_time_constant_s, np.radians(fe.att_noise_std_deg), rng)[1:]
+    if fe.attitude_axes == "yaw":
+        att[:, :2] = 0.0
+    elif fe.attitude_axes != "all":
+        raise ConfigError(f"flight_errors.attitude_axes={fe.attitude_axes!r}; use 'yaw' or 'all'")
+    return bias + white, att
+
+
 def true_rates(t_s: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Exact camera velocity (P, 3) world and angular velocity (P, 3) camera frame of a pose track
     (times (P,) seconds, poses (P, 4, 4)): velocity by central differences; angular velocity forward,
@@ -142,9 +210,13 @@ def true_rates(t_s: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np
 
 
 def _imu_rates(rng: np.random.Generator, t_s: np.ndarray, T_true: np.ndarray, cfg: SynthConfig) -> dict:
-    """The rate channels of one camera (CameraCapture keyword arguments): truth + noise (module doc, 6)."""
+    """The rate channels of one camera (CameraCapture keyword arguments): truth + noise (module doc, 6); with
+    ``pose_errors = "flight"`` the velocity alone, with the estimator's velocity noise (module doc, 5)."""
     v, w = true_rates(t_s, T_true)
     n = len(t_s)
+    if cfg.pose_errors == "flight":
+        s = cfg.flight_errors.vel_noise_std_m_s
+        return {"vel_world_mps": v + rng.normal(0.0, s, (n, 3)), "vel_sigma_mps": max(np.sqrt(3.0) * s, 1e-3)}
     v_meas = v + rng.normal(0.0, cfg.camera_vel_noise_mps / np.sqrt(3.0), (n, 3))
     bias = rng.normal(0.0, np.radians(cfg.camera_rate_bias_degps) / np.sqrt(3.0), 3)
     w_meas = w + bias + rng.normal(0.0, np.radians(cfg.camera_rate_noise_degps) / np.sqrt(3.0), (n, 3))
@@ -169,8 +241,11 @@ def synthesize_capture(
         raise CaptureError("t_ns must give one time per joint frame, at least 2 frames")
     if cfg.drones < 1:
         raise CaptureError("drones must be >= 1")
+    if cfg.pose_errors not in POSE_ERRORS:
+        raise ConfigError(f"synth.pose_errors={cfg.pose_errors!r}; use one of {', '.join(map(repr, POSE_ERRORS))}")
     rng = np.random.default_rng(seed)
     rng_rates = np.random.default_rng([seed, 1])  # own stream: rates on/off leaves the other draws alone
+    rng_flight = np.random.default_rng([seed, 2])  # own stream: the flight's pose errors
     t0, t1 = int(t_ns[0]), int(t_ns[-1])
     dur_s = (t1 - t0) * 1e-9
     hip_mid = 0.5 * (joints_ned[:, 11] + joints_ned[:, 12])
@@ -186,6 +261,10 @@ def synthesize_capture(
     omega = cfg.speed_mps / max(cfg.radius_m, 1e-6)
     K = intrinsics_matrix(cfg.focal_px, cfg.focal_px, cfg.width_px / 2.0, cfg.height_px / 2.0)
     period_ns = int(1e9 / cfg.camera_rate_hz)
+    if cfg.pose_errors == "flight":
+        pos_sigma, rot_sigma = cfg.flight_errors.pos_sigma_m(), cfg.flight_errors.rot_sigma_deg()
+    else:
+        pos_sigma, rot_sigma = cfg.camera_pos_noise_m, cfg.camera_rot_noise_deg
 
     cams, T_true_all, T_true_frames = [], [], []
     for c in range(cfg.drones):
@@ -195,10 +274,16 @@ def synthesize_capture(
              np.full_like(ang, -cfg.altitude_m)], axis=-1)  # fmt: skip
         wob = _smooth_error(rng, tp_s, np.radians(cfg.aim_wobble_deg) * np.linalg.norm(pos - hip_p, axis=-1).mean())
         T_true = look_at_T_world_cam(pos, centre_p + wob)  # gimbal tracks the filtered person estimate
-        # drone estimate = truth + bias/drift
-        dp = _pose_error(rng, tp_s, cfg.camera_pos_noise_m, cfg.camera_noise_drift_fraction)
-        dr = _pose_error(rng, tp_s, np.radians(cfg.camera_rot_noise_deg), cfg.camera_noise_drift_fraction)
-        R_est = Rotation.from_rotvec(dr).as_matrix() @ T_true[:, :3, :3]
+        if cfg.pose_errors == "flight":  # the simulator's estimator: R_est = R_true @ exp(err), or the pan error alone
+            dp, dr = flight_pose_errors(rng_flight, tp_s, cfg.flight_errors)
+            if cfg.flight_errors.attitude_axes == "yaw":  # the vehicle's yaw error turns the camera about world down
+                R_est = Rotation.from_rotvec(dr).as_matrix() @ T_true[:, :3, :3]
+            else:
+                R_est = T_true[:, :3, :3] @ Rotation.from_rotvec(dr).as_matrix()
+        else:  # drone estimate = truth + bias/drift
+            dp = _pose_error(rng, tp_s, cfg.camera_pos_noise_m, cfg.camera_noise_drift_fraction)
+            dr = _pose_error(rng, tp_s, np.radians(cfg.camera_rot_noise_deg), cfg.camera_noise_drift_fraction)
+            R_est = Rotation.from_rotvec(dr).as_matrix() @ T_true[:, :3, :3]
         T_est = make_T(R_est, T_true[:, :3, 3] + dp)
 
         phase = int(rng.uniform(0, period_ns)) if cfg.unsync else 0
@@ -235,7 +320,7 @@ def synthesize_capture(
             CameraCapture(
                 **rates,
                 name=f"drone_{c}", t_pose_ns=t_pose, T_world_cam=T_est,
-                pos_sigma_m=max(cfg.camera_pos_noise_m, 1e-3), rot_sigma_deg=max(cfg.camera_rot_noise_deg, 1e-2),
+                pos_sigma_m=max(pos_sigma, 1e-3), rot_sigma_deg=max(rot_sigma, 1e-2),
                 t_intrinsics_ns=np.array([t0]), K=K[None], width_px=cfg.width_px, height_px=cfg.height_px,
                 t_frame_ns=tf, keypoints_px=kp, confidence=conf,
                 detectors=tuple(f"synthetic_{d}" for d in range(D)),

@@ -114,46 +114,83 @@ def compute_metrics(res: FitResult, gt: np.ndarray) -> dict:
 
 
 def sources(synth: SynthConfig) -> dict:
-    """What the harness scored: ``keypoints_source`` (the 2D keypoints) and ``position_grade`` (the drone poses)."""
+    """What the harness scored: ``keypoints_source`` (the 2D keypoints) and ``position_grade`` (the drone poses), with
+    their details (``keypoints_detail``, ``pose_errors_detail``). This harness's keypoints are simulated ("sim");
+    its poses carry white noise ("white") or the flight's model ("flight": :mod:`evaluation.harness` names the
+    grade, rtk or gps)."""
     drift = f", drift fraction {synth.camera_noise_drift_fraction:g}" if synth.camera_noise_drift_fraction else ""
-    return {"keypoints_source": f"simulated: true projections + {synth.noise_px:g} px noise, "
+    if synth.pose_errors == "flight":
+        fe = synth.flight_errors
+        pose = (f"Gauss-Markov position bias {fe.pos_bias_std_xy_m:g} m horizontal / {fe.pos_bias_std_z_m:g} m vertical "
+                f"(tau {fe.pos_bias_time_constant_s:g} s) + {fe.pos_noise_std_m:g} m white; attitude "
+                f"{fe.att_noise_std_deg:g} deg per axis (tau {fe.att_noise_time_constant_s:g} s)")
+    else:
+        pose = f"white noise {synth.camera_pos_noise_m:g} m / {synth.camera_rot_noise_deg:g} deg{drift}"
+    return {"keypoints_source": "sim", "position_grade": "flight" if synth.pose_errors == "flight" else "white",
+            "keypoints_detail": f"simulated: true projections + {synth.noise_px:g} px noise, "
                                 f"{100 * synth.outlier_rate:g} % outliers ({synth.detectors} detector(s))",
-            "position_grade": f"white noise {synth.camera_pos_noise_m:g} m / {synth.camera_rot_noise_deg:g} deg{drift}"}
+            "pose_errors_detail": pose}
+
+
+def clip_indices(num_frames: int, fps: float, camera_rate_hz: float, start: int, frames: int, motion: str = "") -> np.ndarray:
+    """The scored mocap frames: every ``round(fps / camera_rate_hz)``-th from output frame ``start``, ``frames`` of them
+    (0 = all)."""
+    step = max(1, int(round(fps / camera_rate_hz)))
+    idx = np.arange(start * step, num_frames, step)
+    if frames > 0:
+        idx = idx[:frames]
+    if len(idx) < 3:
+        raise SkycapError(f"{motion}: only {len(idx)} output frames after --start {start}; use a longer clip or a smaller --start")
+    return idx
+
+
+def score_capture(cap, truth: SynthTruth, t_grid: np.ndarray, gt: np.ndarray, fit: FitConfig, motion: str = "",
+                  progress: bool = True, scored: np.ndarray | None = None) -> tuple[FitResult, dict]:
+    """Fit ``cap`` at the output times ``t_grid`` (T,) and score it against ``gt`` (S, 17, 3), the truth at the scored
+    times ``t_grid[scored]`` (``scored``: (T,) bool, default all; the rest is context the fit sees but the metrics
+    leave out): (fit result over all of ``t_grid``, metrics without the sources)."""
+    res = fit_capture(cap, t_grid, fit, progress=progress)
+    scored = np.ones(len(t_grid), bool) if scored is None else np.asarray(scored, bool)
+    n = int(scored.sum())
+    metrics = {"motion": str(motion), "method": fit.method, "frames": n, "cameras": cap.num_cameras,
+               "context_frames": int(len(t_grid) - n), "fit_seconds": res.fit_seconds,
+               "fit_frames_per_s": len(t_grid) / res.fit_seconds}  # fmt: skip
+    metrics.update(compute_metrics(dataclasses.replace(res, joints_ned=res.joints_ned[scored], t_ns=res.t_ns[scored]), gt))
+    metrics.update(camera_errors(res, cap, truth))
+    return res, metrics
+
+
+def write_outputs(out: str | Path, cfg, metrics: dict, res: FitResult, cap, t_grid: np.ndarray, gt: np.ndarray,
+                  export: bool = True) -> Path:
+    """``out``/config.toml (``cfg``), metrics.json and, with ``export``, the reconstruction's exports and the truth."""
+    from reconstruction.export import export_motion
+    from skycap.config import save_config
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "config.toml")
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if export:
+        cams = []
+        for ci, cam in enumerate(cap.cameras):
+            sel = res.cam_index == ci
+            cams.append({"name": cam.name, "t_ns": res.cam_t_ns[sel], "T_world_cam": res.T_world_cam_refined[sel],
+                         "K": cam.K[0], "width_px": cam.width_px, "height_px": cam.height_px})  # fmt: skip
+        export_motion(out, res.joints_ned, res.t_ns, params=res.params(), shape=res.shape, cameras=cams, capture=cap,
+                      stem="reconstruction")  # fmt: skip
+        np.savez_compressed(out / "ground_truth.npz", t_ns=t_grid, joints_ned=gt)
+    return out
 
 
 def run_eval(cfg: EvalConfig, progress: bool = True) -> dict:
     """Run the harness; writes ``cfg.out``/metrics.json (+ exports) when ``cfg.out`` is set. Returns the metrics."""
     J, t_ns, fps = load_motion(cfg.motion)
-    step = max(1, int(round(fps / cfg.synth.camera_rate_hz)))
-    idx = np.arange(cfg.start * step, len(J), step)
-    if cfg.frames > 0:
-        idx = idx[: cfg.frames]
-    if len(idx) < 3:
-        raise SkycapError(f"{cfg.motion}: only {len(idx)} output frames after --start {cfg.start}; use a longer clip or a smaller --start")
+    idx = clip_indices(len(J), fps, cfg.synth.camera_rate_hz, cfg.start, cfg.frames, cfg.motion)
     lo, hi = idx[0], idx[-1] + 1
     cap, truth = synthesize_capture(J[lo:hi], t_ns[lo:hi], cfg.synth, seed=cfg.seed)
     t_grid, gt = t_ns[idx], J[idx]
-    res = fit_capture(cap, t_grid, cfg.fit, progress=progress)
-    metrics = {"motion": str(cfg.motion), "method": cfg.fit.method, "frames": int(len(idx)), "cameras": cap.num_cameras,
-               "fit_seconds": res.fit_seconds, "fit_frames_per_s": len(idx) / res.fit_seconds}  # fmt: skip
+    res, metrics = score_capture(cap, truth, t_grid, gt, cfg.fit, cfg.motion, progress)
     metrics.update(sources(cfg.synth))
-    metrics.update(compute_metrics(res, gt))
-    metrics.update(camera_errors(res, cap, truth))
     if cfg.out:
-        from reconstruction.export import export_motion
-        from skycap.config import save_config
-
-        out = Path(cfg.out)
-        out.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, out / "config.toml")
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-        if cfg.export:
-            cams = []
-            for ci, cam in enumerate(cap.cameras):
-                sel = res.cam_index == ci
-                cams.append({"name": cam.name, "t_ns": res.cam_t_ns[sel], "T_world_cam": res.T_world_cam_refined[sel],
-                             "K": cam.K[0], "width_px": cam.width_px, "height_px": cam.height_px})  # fmt: skip
-            export_motion(out, res.joints_ned, res.t_ns, params=res.params(), shape=res.shape, cameras=cams, capture=cap,
-                          stem="reconstruction")  # fmt: skip
-            np.savez_compressed(out / "ground_truth.npz", t_ns=t_grid, joints_ned=gt)
+        write_outputs(cfg.out, cfg, metrics, res, cap, t_grid, gt, cfg.export)
     return metrics

@@ -2,7 +2,8 @@
 
 All are first-order Gauss-Markov processes where random: ``x <- x * exp(-dt/tau) + sigma *
 sqrt(1 - exp(-2 dt/tau)) * N(0, 1)``, whose stationary std is ``sigma`` and whose increments over a
-short ``dt`` have variance ``2 sigma^2 dt / tau`` (a random walk that stays bounded).
+short ``dt`` have variance ``2 sigma^2 dt / tau`` (a random walk that stays bounded): :mod:`skycap.gauss_markov`,
+shared with the evaluation harness.
 """
 
 from __future__ import annotations
@@ -12,12 +13,7 @@ import math
 import numpy as np
 
 from simulator.config import BatteryConfig, EstimatorConfig, WindConfig
-
-
-def gauss_markov_step(x: np.ndarray, dt_s: float, tau_s: float, sigma, rng: np.random.Generator) -> np.ndarray:
-    """One exact discrete step of a first-order Gauss-Markov process (shape of ``x`` kept)."""
-    phi = math.exp(-dt_s / tau_s)
-    return x * phi + np.asarray(sigma) * math.sqrt(1.0 - phi * phi) * rng.standard_normal(np.shape(x))
+from skycap.gauss_markov import gauss_markov_step
 
 
 class WindModel:
