@@ -218,9 +218,13 @@ class BlazePose(KeypointModel):
     min_detection_score = 0.5
     upright = True
 
+    #: the landmark outputs read here (the shipped landmark file is cut to them, see scripts/make_models/)
+    landmark_outputs = ("ld_3d", "output_poseflag")
+
     def __init__(self, name: str, threads: int = 1, crop_scale: float = 1.25):
         super().__init__(name, threads, crop_scale)
-        self.det_session, _ = _open("blazepose_detector", threads)
+        self.output_names = [o for o in self.landmark_outputs if o in self.output_names]
+        self.det_session, _ = _open(blazepose_detector_name(name), threads)
         self.det_input = self.det_session.get_inputs()[0].name
         self.anchors = _pose_detector_anchors()
 
@@ -318,6 +322,12 @@ class BlazePose(KeypointModel):
             nxt = self.roi_from_landmarks(aux) if flag >= self.min_detection_score else None
             state.update(roi=nxt, frame_id=int(fid), hip_px=aux[0])
         return out
+
+
+def blazepose_detector_name(landmark_name: str) -> str:
+    """The pose detector a BlazePose landmark model runs with: its int8 twin for an int8 model
+    (``blazepose_full_int8`` -> ``blazepose_detector_int8``), else the float ``blazepose_detector``."""
+    return "blazepose_detector_int8" if landmark_name.endswith("_int8") else "blazepose_detector"
 
 
 def _open(name: str, threads: int):
