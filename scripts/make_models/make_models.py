@@ -78,6 +78,8 @@ MODELS: tuple[ModelSpec, ...] = (
     ModelSpec("movenet_thunder", HUMAN_MODELS, "package/models/movenet-thunder.json", KEYPOINTS_DIR),
     ModelSpec("blazepose_full", HUMAN_MODELS, "package/models/blazepose-full.json", KEYPOINTS_DIR,
               outputs=("ld_3d", "output_poseflag")),
+    ModelSpec("blazepose_lite", HUMAN_MODELS, "package/models/blazepose-lite.json", KEYPOINTS_DIR,
+              outputs=("ld_3d", "output_poseflag")),
     ModelSpec("blazepose_detector", HUMAN_MODELS, "package/models/blazepose-detector.json", KEYPOINTS_DIR),
 )
 

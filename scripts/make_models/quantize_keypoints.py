@@ -1,33 +1,28 @@
-"""Derived keypoint models: BlazePose's landmark network cut to the outputs skycap reads, and onnxruntime static
-int8 (QDQ) quantisations of the keypoint networks, calibrated on crops from a recorded flight.
+"""onnxruntime static int8 (QDQ) quantisations of the keypoint networks, calibrated on crops from a recorded flight
+-- an experiment, not shipped: on the AMD EPYC (Zen 2: AVX2, no VNNI) of the 2-core machine they are SLOWER than
+the float models (MoveNet Lightning 26 vs 21 CPU ms per crop, BlazePose full 32 vs 24) and BlazePose's landmarks
+move by ~9% of the crop side (reconstruction/process/README.md, "Keypoint models"). Kept to redo the measurement on
+a CPU with VNNI / AVX512-VNNI, where onnxruntime's u8s8 kernels are fast.
 
 Runs in the converter venv (it needs ``onnx``; ``make_models.sh`` sets it up), from the shipped float models:
 
     # 1. calibration crops (project venv; a flight that is NOT the one the models are evaluated on)
     python scripts/make_models/keypoint_crops.py CALIB_FLIGHT --out /tmp/crops.npz
-    # 2. the derived models (converter venv), written beside the shipped ones
-    $CONVENV/bin/python scripts/make_models/quantize_keypoints.py --crops /tmp/crops.npz [--crops more.npz]
+    # 2. the int8 models (converter venv) into a folder of their own
+    $CONVENV/bin/python scripts/make_models/quantize_keypoints.py --crops /tmp/crops.npz --out-dir /tmp/int8
+    # 3. CPU time per crop (project venv)
+    python scripts/make_models/keypoint_cpu_ms.py --crops /tmp/crops.npz movenet_lightning=/tmp/int8/movenet_lightning_int8.onnx
 
-What it writes (``--out-dir``, default ``reconstruction/keypoints/models/``):
-
-* ``blazepose_full.onnx`` cut (``--prune``, on by default) to the outputs ``ld_3d`` and ``output_poseflag``: the
-  landmark network also computes a segmentation mask, a heatmap and world landmarks that nothing reads (~40% of
-  its time; onnxruntime runs the whole graph whatever outputs are asked for). Same weights, same ``ld_3d``.
-* ``<model>_int8.onnx`` for each of ``--quantize`` (default movenet_lightning, blazepose_full, blazepose_detector):
-  float16 weight casts folded to float32, then ``onnxruntime.quantization.quantize_static`` in QDQ format,
-  per-channel int8 weights, uint8 activations, MinMax calibration on the crops. ``--reduce-range`` (7-bit weights)
-  avoids the u8s8 saturation of AVX2 CPUs without VNNI (the vpmaddubsw pair sums overflow int16);
-  ``--weight-type uint8`` is the other way out (u8u8, slower kernels). The default was chosen by the accuracy
-  table in ``reconstruction/process/README.md``.
-
-Then update ``SHA256SUMS.txt`` (``--sums``, on by default, rewrites the lines of the files written) and the
-README's rows.
+Per model (``--quantize``, default movenet_lightning, blazepose_full, blazepose_detector): float16 weight casts
+folded to float32, then ``onnxruntime.quantization.quantize_static`` in QDQ format, per-channel int8 weights, uint8
+activations, MinMax calibration on the crops. ``--reduce-range`` (7-bit weights, the default) avoids the u8s8
+saturation of AVX2 CPUs without VNNI (vpmaddubsw's pair sums overflow int16); ``--no-reduce-range`` gives full-range
+u8s8; ``--weight-type uint8`` is u8u8; ``--skip-depthwise`` leaves the depthwise convolutions in float.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import sys
 import tempfile
 from pathlib import Path
@@ -36,8 +31,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "reconstruction" / "keypoints" / "models"
-#: the landmark outputs skycap reads (reconstruction.keypoints.detectors.BlazePose)
-BLAZEPOSE_OUTPUTS = ["ld_3d", "output_poseflag"]
 
 
 def fold_fp16_casts(model):
@@ -60,15 +53,6 @@ def fold_fp16_casts(model):
     del g.initializer[:]
     g.initializer.extend(live)
     return model
-
-
-def prune_outputs(src: Path, dst: Path, outputs: list[str]) -> None:
-    """``src`` cut to the nodes that ``outputs`` need (onnx.utils.extract_model)."""
-    import onnx
-
-    m = onnx.load(str(src))
-    inputs = [i.name for i in m.graph.input if i.name not in {x.name for x in m.graph.initializer}]
-    onnx.utils.extract_model(str(src), str(dst), inputs, outputs)
 
 
 def network_input(name: str, crops_u8: np.ndarray) -> np.ndarray:
@@ -131,35 +115,14 @@ def quantize(name: str, src: Path, dst: Path, crops_u8: np.ndarray, reduce_range
         )
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def update_sums(sums: Path, files: list[Path]) -> None:
-    lines = {}
-    if sums.exists():
-        for ln in sums.read_text().splitlines():
-            if ln.strip():
-                digest, fname = ln.split(maxsplit=1)
-                lines[fname.strip()] = digest
-    for f in files:
-        lines[f.name] = sha256(f)
-    sums.write_text("".join(f"{d}  {n}\n" for n, d in sorted(lines.items())))
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--crops", action="append", default=[], help="npz from keypoint_crops.py (repeatable)")
     ap.add_argument("--src-dir", default=str(MODELS), help="the shipped float models")
-    ap.add_argument("--out-dir", default=str(MODELS))
+    ap.add_argument("--out-dir", required=True, help="where the int8 files go (not the shipped models' folder)")
     ap.add_argument("--quantize", default="movenet_lightning,blazepose_full,blazepose_detector",
                     help="comma-separated models to quantise ('' for none)")
     ap.add_argument("--suffix", default="_int8", help="the quantised files are <model><suffix>.onnx")
-    ap.add_argument("--no-prune", dest="prune", action="store_false", help="leave blazepose_full.onnx as it is")
     ap.add_argument("--reduce-range", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--weight-type", choices=["int8", "uint8"], default="int8")
     ap.add_argument("--per-channel", action=argparse.BooleanOptionalAction, default=True)
@@ -167,20 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--exclude", default="", help="comma-separated node names left in float")
     ap.add_argument("--skip-depthwise", action="store_true", help="leave the depthwise convolutions in float")
     ap.add_argument("--max-crops", type=int, default=0, help="calibrate on at most this many crops (evenly spaced)")
-    ap.add_argument("--no-sums", dest="sums", action="store_false", help="do not rewrite SHA256SUMS.txt")
     a = ap.parse_args(argv)
     src_dir, out_dir = Path(a.src_dir), Path(a.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
-    if a.prune:
-        src = src_dir / "blazepose_full.onnx"
-        dst = out_dir / "blazepose_full.onnx"
-        with tempfile.TemporaryDirectory() as tmp:
-            cut = Path(tmp) / "cut.onnx"
-            prune_outputs(src, cut, BLAZEPOSE_OUTPUTS)
-            cut.replace(dst) if dst.parent == cut.parent else dst.write_bytes(cut.read_bytes())
-        written.append(dst)
-        print(f"{dst}: cut to {BLAZEPOSE_OUTPUTS}", flush=True)
     names = [n for n in a.quantize.split(",") if n]
     if names:
         if not a.crops:
@@ -196,14 +148,11 @@ def main(argv: list[str] | None = None) -> int:
             c = np.concatenate(crops[n])
             if a.max_crops and len(c) > a.max_crops:
                 c = c[np.linspace(0, len(c) - 1, a.max_crops).round().astype(int)]
-            src = (out_dir if a.prune and n == "blazepose_full" else src_dir) / f"{n}.onnx"
+            src = src_dir / f"{n}.onnx"
             dst = out_dir / f"{n}{a.suffix}.onnx"
             quantize(n, src, dst, c, a.reduce_range, a.weight_type, a.per_channel, a.calibrate,
                      [x for x in a.exclude.split(",") if x], a.skip_depthwise)
-            written.append(dst)
             print(f"{dst}: int8 from {len(c)} crops ({dst.stat().st_size / 1e6:.1f} MB)", flush=True)
-    if a.sums and out_dir.resolve() == MODELS.resolve():
-        update_sums(MODELS / "SHA256SUMS.txt", written)
     return 0
 
 
