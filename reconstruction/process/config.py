@@ -39,7 +39,9 @@ class KeypointsConfig:
 
     source: str = "models"
     #: MoveNet Lightning + BlazePose Full: measured on a 3-drone demo flight (bench note in reconstruction/process/
-    #: README.md) as accurate as Thunder + BlazePose (MPJPE 94.7 vs 104.5 mm) at 0.6x its keypoint time
+    #: README.md) as accurate as Thunder + BlazePose (MPJPE 94.7 vs 104.5 mm) at 0.6x its keypoint time.
+    #: ``blazepose_lite`` instead of ``blazepose_full``: -20% keypoint CPU, but whole-flight MPJPE -6 to +23 mm
+    #: (mean +9) over four demo flights (README, "Keypoint models"), so not the default
     models: list[str] = dataclasses.field(default_factory=lambda: ["movenet_lightning", "blazepose_full"])
     #: onnxruntime intra-op threads per model (and per worker, see ``workers``)
     threads: int = 1

@@ -23,13 +23,17 @@ What it does, per model (see :data:`MODELS`):
    initializers followed by a ``Cast`` to float32. The TFJS weights were already float16-quantized,
    so this is lossless; onnxruntime folds the casts when it loads the model, so run time is unchanged
    and the files are half the size.
-5. Write the files into the package folders ``onboard/detector/models/`` and
+5. Cut a model to the outputs skycap reads where :attr:`ModelSpec.outputs` says so (BlazePose's landmarks).
+6. Write the files into the package folders ``onboard/detector/models/`` and
    ``reconstruction/keypoints/models/`` together with ``SHA256SUMS.txt`` (checked at load time).
 
 ``--check`` regenerates into the work folder and checks that each new file computes the same outputs
 as the committed one (onnxruntime, fixed random input) instead of overwriting. tf2onnx names nodes from
 TensorFlow's counters, so a regenerated file is numerically identical but not byte-identical: after a
 real regeneration, commit the new files together with the new ``SHA256SUMS.txt``.
+
+The int8 keypoint models (``*_int8.onnx``) are derived from these by ``quantize_keypoints.py`` (calibration crops
+from a recorded flight, ``keypoint_crops.py``); ``write_sums`` keeps their lines (it hashes every ``.onnx``).
 """
 
 from __future__ import annotations
@@ -62,13 +66,20 @@ class ModelSpec:
     json_path: str  #: path of model.json inside the package
     dest: Path  #: folder it is written to
     dynamic_hw: bool = False  #: make input height/width dynamic (NCHW detector)
+    #: keep only these outputs (and the nodes they need); empty: all. BlazePose's landmark network also computes a
+    #: segmentation mask, a heatmap and world landmarks that skycap never reads: ~40% of its run time, since
+    #: onnxruntime runs the whole graph whatever outputs a caller asks for
+    outputs: tuple[str, ...] = ()
 
 
 MODELS: tuple[ModelSpec, ...] = (
     ModelSpec("nanodet", HUMAN_MODELS, "package/models/nanodet.json", DETECTOR_DIR, dynamic_hw=True),
     ModelSpec("movenet_lightning", HUMAN_MODELS, "package/models/movenet-lightning.json", KEYPOINTS_DIR),
     ModelSpec("movenet_thunder", HUMAN_MODELS, "package/models/movenet-thunder.json", KEYPOINTS_DIR),
-    ModelSpec("blazepose_full", HUMAN_MODELS, "package/models/blazepose-full.json", KEYPOINTS_DIR),
+    ModelSpec("blazepose_full", HUMAN_MODELS, "package/models/blazepose-full.json", KEYPOINTS_DIR,
+              outputs=("ld_3d", "output_poseflag")),
+    ModelSpec("blazepose_lite", HUMAN_MODELS, "package/models/blazepose-lite.json", KEYPOINTS_DIR,
+              outputs=("ld_3d", "output_poseflag")),
     ModelSpec("blazepose_detector", HUMAN_MODELS, "package/models/blazepose-detector.json", KEYPOINTS_DIR),
 )
 
@@ -231,6 +242,12 @@ def main(argv: list[str] | None = None) -> int:
         final = work / "final" / f"{spec.name}.onnx"
         final.parent.mkdir(parents=True, exist_ok=True)
         postprocess(raw, final, spec.dynamic_hw, f"{spec.npm}:{spec.json_path}")
+        if spec.outputs:
+            import onnx
+
+            full = work / "final" / f"{spec.name}.all-outputs.onnx"
+            final.replace(full)
+            onnx.utils.extract_model(str(full), str(final), [onnx.load(str(full)).graph.input[0].name], list(spec.outputs))
         digest = sha256(final)
         log.info("%s: %.1f MB sha256 %s", spec.name, final.stat().st_size / 1e6, digest)
         if args.check:

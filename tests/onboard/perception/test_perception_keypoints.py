@@ -46,7 +46,13 @@ def portraits(astronaut, grace_hopper) -> dict:
 
 #: Known weak spot, kept visible instead of widening every tolerance: BlazePose puts the astronaut's right
 #: elbow (under the bulky suit sleeve) on the upper arm, 0.11-0.12 of the box height above the bend.
-LOOSER_TOLERANCE = {("blazepose_full", "astronaut", "right_elbow"): 0.15}
+#: BlazePose lite (half of full's CPU time) misses that sleeve worse: the right elbow 0.24 of the box height off (near
+#: the shoulder), the right shoulder 0.12; and it puts Grace Hopper's eyes 0.051-0.054 of the box height off.
+LOOSER_TOLERANCE = {("blazepose_full", "astronaut", "right_elbow"): 0.15,
+                    ("blazepose_lite", "astronaut", "right_elbow"): 0.26,
+                    ("blazepose_lite", "astronaut", "right_shoulder"): 0.13,
+                    ("blazepose_lite", "grace_hopper", "left_eye"): 0.06,
+                    ("blazepose_lite", "grace_hopper", "right_eye"): 0.06}
 
 
 @pytest.mark.parametrize("image_name", ["astronaut", "grace_hopper"])
