@@ -133,7 +133,8 @@ def learn_offsets(flights: list, captures: dict | None = None) -> tuple[JointOff
     offs, srcs, stats = {}, {}, {}
     for det, o in obs.items():
         offs[det], stats[det] = solve_offsets(o)
-        srcs[det] = {"flights": [str(f) for f in flights], "observations": int(len(o["joint"])),
+        srcs[det] = {"flights": [str(f) for f in flights], "motions": [_motion_of(FlightFolder(f)) for f in flights],
+                     "camera_set": [_camera_set_of(FlightFolder(f)) for f in flights], "observations": int(len(o["joint"])),
                      "learned_by": "python -m evaluation.learn_offsets", "date": time.strftime("%Y-%m-%d")}
     return JointOffsetTable(offs, srcs), stats
 
@@ -146,15 +147,30 @@ def _motion_of(flight: FlightFolder) -> str:
         return ""
 
 
-def crossval(flights: list, out_dir, fit: FitConfig | None = None) -> dict:
-    """Leave one flight out: offsets learned on the others, the held-out flight fitted without and with them."""
+def _camera_set_of(flight: FlightFolder) -> str:
+    """The flight's camera overrides (person model, body seed) from its ``config.toml``, as one string."""
+    import tomllib
+
+    try:
+        return "; ".join(tomllib.loads((flight.path / "config.toml").read_text()).get("camera_set", []))
+    except (OSError, ValueError):
+        return ""
+
+
+def crossval(flights: list, out_dir, fit: FitConfig | None = None, held_out: list | None = None) -> dict:
+    """Leave one flight out: offsets learned on the others, the held-out flight fitted without and with them.
+    ``held_out``: score only these of ``flights`` (default all; e.g. one per process). Each held-out flight's
+    result goes to ``out_dir/crossval_<flight>.json`` and its table to ``out_dir/offsets_without_<flight>.toml``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     fit = fit or FitConfig()
     folders = [FlightFolder(f) for f in flights]
     caps = {str(f.path): capture_of(f) for f in folders}
     results = {}
+    chosen = None if held_out is None else {FlightFolder(h).path.resolve() for h in held_out}
     for k, held in enumerate(folders):
+        if chosen is not None and held.path.resolve() not in chosen:
+            continue
         train = [f.path for i, f in enumerate(folders) if i != k]
         table, _ = learn_offsets(train, {str(p): caps[str(p)] for p in train})
         tpath = table.save(out_dir / f"offsets_without_{held.path.name}.toml")
@@ -170,7 +186,7 @@ def crossval(flights: list, out_dir, fit: FitConfig | None = None) -> dict:
                                               "root_err_mm", "fit_seconds")}
         results[str(held.path)] = row
         log.info("held out %s: %s", held.path, row)
-        (out_dir / "crossval.json").write_text(json.dumps(results, indent=2))
+        (out_dir / f"crossval_{held.path.name}.json").write_text(json.dumps({str(held.path): row}, indent=2))
     return results
 
 
@@ -198,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     a2 = sub.add_parser("crossval", help="leave one flight out: learn on the others, score the held-out flight")
     a2.add_argument("flights", nargs="+")
     a2.add_argument("--out-dir", required=True)
+    a2.add_argument("--held-out", action="append", default=None, metavar="FLIGHT",
+                    help="score only this flight (repeatable; default every flight)")
     a2.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="FitConfig overrides")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -215,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {a.out}")
     else:
         fit = load_config(FitConfig, None, a.set)
-        res = crossval(a.flights, a.out_dir, fit)
+        res = crossval(a.flights, a.out_dir, fit, a.held_out)
         print(format_crossval(res))
     return 0
 

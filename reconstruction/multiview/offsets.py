@@ -95,20 +95,26 @@ class JointOffsetTable:
         return np.stack([self.offsets_body_m.get(d, np.zeros((17, 3))) for d in detectors]) if len(detectors) else np.zeros((0, 17, 3))
 
     def save(self, path: str | Path) -> Path:
-        """Write the table as TOML (offsets in mm, one row per joint name)."""
+        """Write the table as TOML (offsets in mm, one row per joint, named in a comment)."""
+        import json
+
         import tomli_w
 
-        doc = {"body_frame": "columns (forward, left, up): left = right hip -> left hip; up = hips' midpoint -> "
-                             "shoulders' midpoint, orthogonal to left; forward = left x up",
-               "units": "mm", "detector": []}
+        lines = ['body_frame = "columns (forward, left, up): left = right hip -> left hip; up = hip midpoint -> '
+                 'shoulder midpoint, orthogonal to left; forward = left x up"', 'units = "mm"', ""]
         for name, off in self.offsets_body_m.items():
-            e = {"name": name, "joints": list(COCO17_NAMES),
-                 "offset_fwd_left_up_mm": [[round(float(v) * 1e3, 1) for v in row] for row in off]}
-            e.update(self.sources.get(name, {}))
-            doc["detector"].append(e)
+            lines += ["[[detector]]", f"name = {json.dumps(name)}", f"joints = {json.dumps(list(COCO17_NAMES))}",
+                      "offset_fwd_left_up_mm = ["]
+            lines += [f"    [{row[0] * 1e3:.1f}, {row[1] * 1e3:.1f}, {row[2] * 1e3:.1f}],  # {n}"
+                      for n, row in zip(COCO17_NAMES, off)]
+            lines.append("]")
+            extra = self.sources.get(name, {})
+            if extra:
+                lines.append(tomli_w.dumps(extra).rstrip())
+            lines.append("")
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(tomli_w.dumps(doc))
+        path.write_text("\n".join(lines))
         return path
 
     @classmethod

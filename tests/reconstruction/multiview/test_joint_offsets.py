@@ -71,6 +71,9 @@ def test_table_roundtrip_and_clear_errors(tmp_path):
     (tmp_path / "bad.toml").write_text('[[detector]]\nname = "d"\njoints = ["elbowz"]\noffset_fwd_left_up_mm = [[1, 2, 3]]\n')
     with pytest.raises(JointOffsetError, match="elbowz"):
         load_offsets(str(tmp_path / "bad.toml"))
+    builtin = load_offsets("builtin")  # the committed table reads, holds the fused models, offsets of centimetres
+    fused = builtin.offsets_body_m["fused:movenet_lightning+blazepose_full"]
+    assert 0.01 < np.abs(fused).max() < 0.2
 
 
 @pytest.fixture(scope="module")
