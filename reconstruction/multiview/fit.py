@@ -260,7 +260,7 @@ def _capture_offsets(capture: Capture, cfg: FitConfig) -> np.ndarray | None:
     for ci, c in enumerate(capture.cameras):
         off[ci, : c.num_detectors] = table.for_detectors(c.detectors)
     if not np.any(off):
-        log.warning("joint offsets %r hold none of the capture's detectors (%s): fitting without offsets",
+        log.info("joint offsets %r hold none of the capture's detectors (%s): fitting without offsets",
                     cfg.joint_offsets, sorted({d for c in capture.cameras for d in c.detectors}))
         return None
     return off

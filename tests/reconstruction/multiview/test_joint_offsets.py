@@ -109,3 +109,12 @@ def test_offsets_of_unnamed_detectors_change_nothing(offset_capture, tmp_path):
     a = fit_capture(cap, t_ns, FitConfig(iters=10, refine_cameras=False, joint_offsets=table), progress=False)
     b = fit_capture(cap, t_ns, FitConfig(iters=10, refine_cameras=False), progress=False)
     np.testing.assert_array_equal(a.joints_ned, b.joints_ned)
+
+
+def test_the_multiview_product_has_them_on_and_a_set_turns_them_off():
+    from reconstruction.process.config import ProcessConfig
+    from skycap.config import load_config
+
+    assert load_config(ProcessConfig, None, []).multiview.fit.joint_offsets == "builtin"
+    assert load_config(ProcessConfig, None, ['multiview.fit.joint_offsets=""']).multiview.fit.joint_offsets == ""
+    assert FitConfig().joint_offsets == ""  # the bare fit (harness, ablation, monocular) stays without
