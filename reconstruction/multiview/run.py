@@ -42,10 +42,7 @@ class MultiviewConfig:
     (``refined_track.npz``, ``skycap refine``); gimbal_stabilised: the camera's gimbal holds roll and pitch.
     """
 
-    #: the product fit with the keypoint models' learned joint offsets on (``fit.joint_offsets = "builtin"``: they
-    #: cut the steady-orbit MPJPE of 4 held-out Anny flights by 12 mm on average; ``--set multiview.fit.joint_offsets=
-    #: '""'`` turns them off; see README "Keypoint models' joint offsets")
-    fit: FitConfig = dataclasses.field(default_factory=lambda: FitConfig(joint_offsets="builtin"))
+    fit: FitConfig = dataclasses.field(default_factory=FitConfig)
     rate_hz: float | None = None
     rrd: bool = True
     use_refined_poses: bool = False

@@ -111,10 +111,9 @@ def test_offsets_of_unnamed_detectors_change_nothing(offset_capture, tmp_path):
     np.testing.assert_array_equal(a.joints_ned, b.joints_ned)
 
 
-def test_the_multiview_product_has_them_on_and_a_set_turns_them_off():
+def test_a_set_turns_them_on_in_the_product():
     from reconstruction.process.config import ProcessConfig
     from skycap.config import load_config
 
-    assert load_config(ProcessConfig, None, []).multiview.fit.joint_offsets == "builtin"
-    assert load_config(ProcessConfig, None, ['multiview.fit.joint_offsets=""']).multiview.fit.joint_offsets == ""
-    assert FitConfig().joint_offsets == ""  # the bare fit (harness, ablation, monocular) stays without
+    assert load_config(ProcessConfig, None, []).multiview.fit.joint_offsets == ""  # off by default (see the README)
+    assert load_config(ProcessConfig, None, ['multiview.fit.joint_offsets="builtin"']).multiview.fit.joint_offsets == "builtin"
