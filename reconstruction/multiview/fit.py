@@ -56,6 +56,7 @@ from tqdm import tqdm
 from reconstruction.body import skeleton17 as sk
 from reconstruction.body.model import BodyModel, SkeletonBodyModel
 from reconstruction.capture import Capture
+from reconstruction.multiview.offsets import body_frame, body_frame_torch, load_offsets
 from reconstruction.multiview.observations import camera_track, fill_gaps, gather, interpolate_to_grid, median_in_time, reject_blunders, triangulate
 from reconstruction.prior import PosePrior, load_default_prior
 from skycap.skeleton import COCO17_FLIP
@@ -114,6 +115,12 @@ class FitConfig:
     gyro_bias_sigma_degps: float = 0.1
     swap_robust: bool = True
     refine_cameras: bool = True
+    #: per-detector joint offsets (:mod:`reconstruction.multiview.offsets`): the product fit compares each detector's
+    #: keypoints with joint + R_world_body @ offset (that detector's convention, e.g. shoulders on the body's
+    #: surface) instead of the joint centre. "" = none, "builtin" = the committed table learned on the rendered
+    #: Anny person (``reconstruction/multiview/data/joint_offsets.toml``), else a TOML path. Detectors that the
+    #: table does not name (e.g. the simulator's true projections) get no offset.
+    joint_offsets: str = ""
     #: L-BFGS iterations (strong-Wolfe line search) after the Adam steps, at the final robust scale: Adam gets into
     #: the basin, L-BFGS converges in it (0 = Adam only; the monocular body fit uses 1000, see its config)
     polish_iters: int = 0
@@ -170,14 +177,19 @@ def _project(X: torch.Tensor, R_wc: torch.Tensor, p: torch.Tensor, K: torch.Tens
     return torch.einsum("nij,nkj->nki", K[:, :2, :2], xy) + K[:, None, :2, 2]
 
 
-def initial_guess(capture: Capture, t_grid_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Robust triangulation at the grid times -> (joints (T, 17, 3), shape (16,), (root_orient, pose, transl) by IK)."""
+def initial_guess(capture: Capture, t_grid_ns: np.ndarray, offsets_body_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Robust triangulation at the grid times -> (joints (T, 17, 3), shape (16,), (root_orient, pose, transl) by IK).
+
+    offsets_body_m: (17, 3) the detectors' mean joint offset (:mod:`reconstruction.multiview.offsets`), taken off the
+    triangulated points (which lie where the detectors put the joints) before the skeleton is fitted to them."""
     uv, conf, Ts, Ks = interpolate_to_grid(capture, t_grid_ns)
     X = median_in_time(fill_gaps(reject_blunders(triangulate(uv, conf, Ts, Ks))))
     if not np.all(np.isfinite(X)):
         from reconstruction.capture import CaptureError
 
         raise CaptureError("too few views to triangulate the person (need two cameras seeing each joint sometime)")
+    if offsets_body_m is not None:
+        X = X - np.einsum("tij,nj->tni", body_frame(X), offsets_body_m)
     return params_from_joints(X)
 
 
@@ -229,10 +241,29 @@ def fit_capture(
             start = params_from_joints(X0)
         else:
             # the paper path starts from the first few output times only (like AirCap's online estimate)
-            start = initial_guess(capture, t_grid if cfg.method == "product" else t_grid[: max(min(len(t_grid), 5), 2)])
+            off = _capture_offsets(capture, cfg)
+            mean_off = None if off is None or cfg.method != "product" else off.reshape(-1, 17, 3).mean(0)
+            start = initial_guess(capture, t_grid if cfg.method == "product" else t_grid[: max(min(len(t_grid), 5), 2)],
+                                  mean_off)
         return fits[cfg.method](capture, t_grid, cfg, model, prior, progress, start, t_start)
     finally:
         torch.set_num_threads(n_threads)
+
+
+def _capture_offsets(capture: Capture, cfg: FitConfig) -> np.ndarray | None:
+    """(C, D, 17, 3): each camera's detectors' joint offsets from ``cfg.joint_offsets`` (None: none apply)."""
+    table = load_offsets(cfg.joint_offsets)
+    if table is None:
+        return None
+    D = max(c.num_detectors for c in capture.cameras)
+    off = np.zeros((capture.num_cameras, D, 17, 3))
+    for ci, c in enumerate(capture.cameras):
+        off[ci, : c.num_detectors] = table.for_detectors(c.detectors)
+    if not np.any(off):
+        log.info("joint offsets %r hold none of the capture's detectors (%s): fitting without offsets",
+                    cfg.joint_offsets, sorted({d for c in capture.cameras for d in c.detectors}))
+        return None
+    return off
 
 
 # ----------------------------------------------------------------------------------------- product
@@ -281,6 +312,8 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
     dp = torch.zeros(NK, 3, dtype=dt, device=dev, requires_grad=True)
     # consecutive frames of the same camera (for camera smoothness)
     knot_runs = [(k0_, k1_) for k0_, k1_ in knots["cam_ranges"] if k1_ - k0_ >= 3]
+    off_c = _capture_offsets(capture, cfg)
+    off_f = None if off_c is None else f(off_c[obs.cam])  # (N, D, 17, 3) each frame's detectors' offsets
     noise2 = cfg.expected_noise_px**2
     rc = _rate_constraints(capture, samp, knots) if (cfg.use_rates and cfg.refine_cameras) else {}
     rv, ro_ = rc.get("vel"), rc.get("omega")
@@ -330,11 +363,15 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
         X = model(ro, pose, tr, shape)  # (T, 17, 3)
         Xo = (1 - a) * X[k0] + a * X[k0 + 1]  # (N, 17, 3) at the frames' capture times
         R, p, Rs, pss = cam_poses()
-        pix = _project(Xo, R, p, K)  # (N, 17, 2)
-        e2 = ((pix[:, None] - uv) ** 2).sum(-1)  # (N, D, 17)
+        if off_f is None:
+            pix = _project(Xo, R, p, K)[:, None]  # (N, 1, 17, 2)
+        else:  # each detector's points: joint + R_world_body @ its offset
+            Xd = Xo[:, None] + torch.einsum("nij,ndkj->ndki", body_frame_torch(Xo), off_f)  # (N, D, 17, 3)
+            pix = _project(Xd.reshape(N, -1, 3), R, p, K).reshape(uv.shape)  # (N, D, 17, 2)
+        e2 = ((pix - uv) ** 2).sum(-1)  # (N, D, 17)
         cost = (conf * _gm(e2, sig)).sum(-1)
         if cfg.swap_robust:
-            e2s = ((pix[:, None] - uv_sw) ** 2).sum(-1)
+            e2s = ((pix - uv_sw) ** 2).sum(-1)
             cost = torch.minimum(cost, (conf_sw * _gm(e2s, sig)).sum(-1))
         E_data = cost.sum() / noise2 * 0.5
         E_prior = cfg.w_pose_prior * prior.energy(pose).sum() + cfg.w_limits * prior.limit_penalty(pose).sum()
