@@ -43,7 +43,7 @@ from skycap.frames import R_BODY_CAM_FORWARD, intrinsics_matrix, make_T
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_capture", "read_drone_log", "read_topics", "recordings_summary", "report_times_ns", "READER_VERSION"]
+__all__ = ["read_capture", "read_drone_log", "recordings_summary", "report_times_ns", "READER_VERSION"]
 
 #: bumped when the reader turns the same recordings into a different capture (a cached fit of it is then stale):
 #: 2 = the gimbal reports' clock slip is removed (:func:`report_times_ns`)
@@ -133,28 +133,6 @@ def _gimbal_track(msgs, max_delay_s: float = 0.1) -> tuple[np.ndarray, np.ndarra
     return tt, p, np.unwrap(y)
 
 
-def read_topics(logs, types: dict[str, type]) -> dict[str, list]:
-    """Several topics of a :class:`flightdata.flightlog.SortieLogs` in one pass over each file -> {topic: decoded
-    messages}, each topic exactly as ``logs.read_topic(topic, type)`` gives it (log-time order within a file, files
-    in order; a message of another type is a :class:`FlightLogError`). One pass instead of one per topic: a
-    recording's chunks interleave the camera images with everything else, so each pass decompresses them all."""
-    from flightdata.flightlog import FlightLogError
-
-    out: dict[str, list] = {t: [] for t in types}
-    for fl in logs.logs:
-        rows: dict[str, list] = {t: [] for t in types}
-        for m in fl.messages(list(types)):
-            expected = types[m.topic]
-            if expected is not None and not isinstance(m.msg, expected):
-                raise FlightLogError(f"{fl.path}: topic {m.topic!r} holds {type(m.msg).__name__}, expected "
-                                     f"{expected.__name__}")
-            rows[m.topic].append((m.log_time_ns, m.msg))
-        for t, r in rows.items():
-            r.sort(key=lambda x: x[0])  # stable: equal times keep file order, as read_topic
-            out[t].extend(msg for _, msg in r)
-    return out
-
-
 def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: bool = True,
                    position_offset: tuple[np.ndarray, np.ndarray] | None = None, name: str | None = None,
                    keypoints: tuple | None = None) -> CameraCapture:
@@ -179,7 +157,7 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
         wanted["gimbal"] = GimbalAttitude
     if keypoints is None:
         wanted.update({"keypoints2d": Keypoints2D, "sim/keypoints2d": Keypoints2D})
-    got = read_topics(flog, wanted)  # one pass over the files: their chunks also hold the images
+    got = flog.read_topics(wanted)  # one pass over the files: their chunks also hold the images
     states, infos = got["state"], got["camera_info"]
     gimbal = _gimbal_track(got["gimbal"]) if gimbal_stabilised else None
     kps = None
