@@ -79,6 +79,9 @@ class ExportConfig:
 
     rrd: bool = True
     extra: list[str] = dataclasses.field(default_factory=lambda: ["foxglove"])
+    #: processes (spawned) that write the rerun recording and the extra exporters' files while this process writes
+    #: the motion files (the outputs do not depend on it); 0 = everything in this process, one after the other
+    workers: int = 2
 
 
 @dataclasses.dataclass
