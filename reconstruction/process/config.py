@@ -52,6 +52,10 @@ class KeypointsConfig:
     #: drones whose keypoints are computed at once (threads, each with its own models at ``threads`` onnxruntime
     #: threads): 2 x 1 thread keeps both cores of a 2-core machine busy better than 1 x 2 threads
     workers: int = 2
+    #: "threads" (default: no start-up cost; the Rust writers of rerun and Foxglove, file I/O and decompression run
+    #: beside Python) or "processes" (spawned: every exporter's Python in parallel, but each worker first imports
+    #: numpy / scipy / rerun / foxglove, seconds on a loaded machine)
+    pool: str = "threads"
     #: fuse the models into one detector per camera (False: each model is a detector of its own in the fit)
     fuse: bool = True
     #: two models agree on a joint when their points lie within this fraction of the box's longer side
@@ -79,9 +83,13 @@ class ExportConfig:
 
     rrd: bool = True
     extra: list[str] = dataclasses.field(default_factory=lambda: ["foxglove"])
-    #: processes (spawned) that write the rerun recording and the extra exporters' files while this process writes
-    #: the motion files (the outputs do not depend on it); 0 = everything in this process, one after the other
+    #: workers that write the rerun recording and the extra exporters' files while the motion files are written
+    #: (the outputs do not depend on it); 0 = everything in the calling thread, one after the other
     workers: int = 2
+    #: "threads" (default: no start-up cost; the Rust writers of rerun and Foxglove, file I/O and decompression run
+    #: beside Python) or "processes" (spawned: every exporter's Python in parallel, but each worker first imports
+    #: numpy / scipy / rerun / foxglove, seconds on a loaded machine)
+    pool: str = "threads"
 
 
 @dataclasses.dataclass

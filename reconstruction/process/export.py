@@ -155,15 +155,15 @@ def config_snapshot(cfg: Any) -> Any:
 
 
 def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2,
-               check_cancel: Callable[[], None] | None = None) -> tuple[dict[str, Path], dict[str, float]]:
+               check_cancel: Callable[[], None] | None = None, pool: str = "threads") -> tuple[dict[str, Path], dict[str, float]]:
     """Every output of the export step -> ({name: path}, {exporter: seconds}).
 
     The exporters are independent: the rerun recording (``rrd``) and the ``extra`` exporters (the Foxglove MCAP)
-    run in up to ``workers`` spawned processes (spawn: safe from a threaded caller, e.g. the ground station or a
-    Ray worker) while this process writes ``motion.{bvh,trc,npz,csv}``, so that the step takes about as long as
-    its longest exporter instead of their sum. ``workers=0`` runs them all here, one after the other (the same
-    files). An exporter that cannot be pickled (a lambda, a closure) runs here; in a worker, ``ctx.config`` is a
-    :func:`config_snapshot` (the same attributes). ``check_cancel`` is called
+    run in up to ``workers`` threads (``pool="threads"``) or spawned processes (``pool="processes"``; spawn: safe
+    from a threaded caller, e.g. the ground station or a Ray worker) while the calling thread writes
+    ``motion.{bvh,trc,npz,csv}``. ``workers=0`` runs them all in the calling thread, one after the other (the same
+    files). With processes, an exporter that cannot be pickled (a lambda, a closure) runs here, and in a worker
+    ``ctx.config`` is a :func:`config_snapshot` (the same attributes). ``check_cancel`` is called
     between exporters (it raises to cancel)."""
     names = list(extra)
     for n in names:
@@ -171,20 +171,27 @@ def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2
             raise ProcessError(f"export.extra names {n!r}, which no exporter registered; registered: "
                                f"{', '.join(sorted(EXPORTERS)) or 'none'} (reconstruction.process.export.register_exporter)")
     jobs: list[tuple[str, Exporter]] = ([("rrd", _rrd)] if rrd else []) + [(n, EXPORTERS[n]) for n in names]
-    remote = [(n, fn) for n, fn in jobs if workers > 0 and _picklable(fn)]
+    if pool not in ("threads", "processes"):
+        raise ProcessError(f"export.pool is {pool!r}; use 'threads' or 'processes'")
+    remote = [(n, fn) for n, fn in jobs if workers > 0 and (pool == "threads" or _picklable(fn))]
     local = [(n, fn) for n, fn in jobs if (n, fn) not in remote]
     out: dict[str, Path] = {}
     seconds: dict[str, float] = {}
-    pool = None
+    executor = None
     futures = {}
     try:
         if remote:
             import concurrent.futures as cf
             import multiprocessing
 
-            pool = cf.ProcessPoolExecutor(min(workers, len(remote)), mp_context=multiprocessing.get_context("spawn"))
-            light = dataclasses.replace(ctx, config=config_snapshot(ctx.config))
-            futures = {n: pool.submit(_timed, fn, light) for n, fn in remote}
+            if pool == "threads":
+                executor = cf.ThreadPoolExecutor(min(workers, len(remote)), thread_name_prefix="export")
+                futures = {n: executor.submit(_timed, fn, ctx) for n, fn in remote}
+            else:
+                executor = cf.ProcessPoolExecutor(min(workers, len(remote)),
+                                                  mp_context=multiprocessing.get_context("spawn"))
+                light = dataclasses.replace(ctx, config=config_snapshot(ctx.config))
+                futures = {n: executor.submit(_timed, fn, light) for n, fn in remote}
         for n, fn in [("motion", _motion_files)] + local:
             if check_cancel is not None:
                 check_cancel()
@@ -200,8 +207,8 @@ def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2
                 res, seconds[n] = _timed(EXPORTERS[n] if n in EXPORTERS else _rrd, ctx)
             out.update({k: Path(v) for k, v in res.items()})
     finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        if executor is not None:
+            executor.shutdown(wait=True, cancel_futures=True)
     # the standard files first, then the extra ones in their order (as summary.json lists them)
     order = ["bvh", "trc", "npz", "csv", "rrd"]
     out = {k: out[k] for k in order if k in out} | {k: v for k, v in out.items() if k not in order}

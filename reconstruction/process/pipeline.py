@@ -242,8 +242,8 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
         out = Path(cfg.out_dir) if cfg.out_dir else flight.reconstruction_dir(method)
         ctx = ExportContext(flight=flight, out_dir=out, t_ns=t_ns, joints_ned=joints, capture=capture, method=method,
                             config=cfg, keypoints_source=keypoints_source, boxes=boxes, params=params, shape=shape)
-        exp_key = make_key("export", CACHE_VERSION, fit_key, dataclasses.replace(cfg.export, workers=0),
-                           str(out.resolve()))  # the worker count does not change the files
+        exp_key = make_key("export", CACHE_VERSION, fit_key, dataclasses.replace(cfg.export, workers=0, pool=""),
+                           str(out.resolve()))  # how the exporters run does not change the files
         marker = step_dir("export") / f"{exp_key}.json"
         prev = _read_marker(marker)
         exporter_s: dict[str, float] = {}
@@ -251,7 +251,8 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
             paths = prev
         else:
             out.mkdir(parents=True, exist_ok=True)
-            paths, exporter_s = export_all(ctx, cfg.export.rrd, cfg.export.extra, cfg.export.workers, sp.check_cancel)
+            paths, exporter_s = export_all(ctx, cfg.export.rrd, cfg.export.extra, cfg.export.workers, sp.check_cancel,
+                                           cfg.export.pool)
             capture.save(out / "capture.npz")
             from skycap.config import save_config
 
