@@ -19,6 +19,7 @@ X = north, Y = up, Z = east (right-handed; OpenSim's and the BVH convention of Y
   the defaults. The scene's end frame (250 in a new scene, 10.4 s) is not changed by the default import; a longer
   motion is all imported (the action spans frames 1..N) but plays past frame 250 only after "Update Scene
   Duration" is ticked or the End frame set (README, Outputs). A BVH cannot carry the scene's frame range.
+  It is written in windows of :data:`BVH_WINDOW_FRAMES` frames (memory flat in the motion's length).
 * :func:`write_joints_trc` — OpenSim / Pose2Sim marker trajectories (TRC, tab-separated): marker names are the
   COCO-17 joint names, metres, Y-up (:func:`skycap.frames.ned_to_yup`), a constant ``DataRate`` (resampled
   to it when the frame times are not uniform).
