@@ -52,10 +52,6 @@ class KeypointsConfig:
     #: drones whose keypoints are computed at once (threads, each with its own models at ``threads`` onnxruntime
     #: threads): 2 x 1 thread keeps both cores of a 2-core machine busy better than 1 x 2 threads
     workers: int = 2
-    #: "threads" (default: no start-up cost; the Rust writers of rerun and Foxglove, file I/O and decompression run
-    #: beside Python) or "processes" (spawned: every exporter's Python in parallel, but each worker first imports
-    #: numpy / scipy / rerun / foxglove, seconds on a loaded machine)
-    pool: str = "threads"
     #: fuse the models into one detector per camera (False: each model is a detector of its own in the fit)
     fuse: bool = True
     #: two models agree on a joint when their points lie within this fraction of the box's longer side
@@ -79,7 +75,8 @@ class WindowsConfig:
 class ExportConfig:
     """Outputs: ``motion.{bvh,npz,csv,trc}`` (+ ``motion.rrd`` with ``rrd``), and the named ``extra`` exporters
     registered with :func:`reconstruction.process.export.register_exporter` (default: ``foxglove``, the processed
-    flight as ``flight.foxglove.mcap``)."""
+    flight as ``flight.foxglove.mcap``); the rerun recording and the extra exporters run in ``workers`` threads or
+    processes (``pool``) beside the motion files (:func:`reconstruction.process.export.export_all`)."""
 
     rrd: bool = True
     extra: list[str] = dataclasses.field(default_factory=lambda: ["foxglove"])
