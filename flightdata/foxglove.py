@@ -80,17 +80,30 @@ def _ts(t_ns: int):
     return Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000)
 
 
-def _pose_msgs(R: np.ndarray, t: np.ndarray):
+def _pose_msgs(R: np.ndarray | None, t: np.ndarray, quat_xyzw: np.ndarray | None = None):
+    """(Vector3, Quaternion) of a pose: rotation ``R`` (None: the identity) or its quaternion ``quat_xyzw`` already
+    computed (:func:`_quats`, many at once: a scipy call per message was most of the export's time)."""
     from foxglove.messages import Quaternion, Vector3
 
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    if quat_xyzw is None:
+        quat_xyzw = _IDENTITY_XYZW if R is None else Rotation.from_matrix(R).as_quat()
+    x, y, z, w = quat_xyzw
     return Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])), Quaternion(x=float(x), y=float(y), z=float(z), w=float(w))
 
 
-def _tf(t_ns: int, parent: str, child: str, R: np.ndarray, t: np.ndarray):
+#: scipy's quaternion of the identity matrix
+_IDENTITY_XYZW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _quats(R: np.ndarray) -> np.ndarray:
+    """Quaternions (N, 4) (x, y, z, w) of rotations (N, 3, 3), as ``Rotation.from_matrix(R[i]).as_quat()`` each."""
+    return Rotation.from_matrix(R).as_quat() if len(R) else np.zeros((0, 4))
+
+
+def _tf(t_ns: int, parent: str, child: str, R: np.ndarray | None, t: np.ndarray, quat_xyzw: np.ndarray | None = None):
     from foxglove.messages import FrameTransform
 
-    tr, q = _pose_msgs(R, t)
+    tr, q = _pose_msgs(R, t, quat_xyzw)
     return FrameTransform(timestamp=_ts(t_ns), parent_frame_id=parent, child_frame_id=child, translation=tr, rotation=q)
 
 
@@ -140,12 +153,11 @@ def _annotations(t_ns: int, det: Detections | None, kp: Keypoints2D | None):
     return ImageAnnotations(timestamp=ts, points=points, texts=texts)
 
 
-def _by_frame(logs: SortieLogs, topics: tuple[str, ...]) -> tuple[str | None, dict[tuple[str, int], Any]]:
-    """The first of ``topics`` that the drone recorded, as {(camera_id, frame_index): message}."""
-    have = {t for fl in logs.logs for t in fl.topic_counts()}
+def _by_frame(got: dict[str, list], topics: tuple[str, ...]) -> tuple[str | None, dict[tuple[str, int], Any]]:
+    """The first of ``topics`` with messages in ``got`` (topic -> messages), as {(camera_id, frame_index): message}."""
     for topic in topics:
-        if topic in have:
-            return topic, {(m.camera_id, m.frame_index): m for m in logs.read_topic(topic)}
+        if got.get(topic):
+            return topic, {(m.camera_id, m.frame_index): m for m in got[topic]}
     return None, {}
 
 
@@ -166,7 +178,7 @@ def _skeleton_entity(t_ns: int, joints_ned: np.ndarray):
 def _pose(p: np.ndarray, R: np.ndarray | None = None):
     from foxglove.messages import Pose
 
-    tr, q = _pose_msgs(np.eye(3) if R is None else R, p)
+    tr, q = _pose_msgs(R, p)
     return Pose(position=tr, orientation=q)
 
 
@@ -176,14 +188,21 @@ def _kv(d: dict[str, str]):
     return [KeyValuePair(key=k, value=v) for k, v in d.items()]
 
 
-def _track_entity(t_ns: int, name: str, path_ned: np.ndarray, color):
-    from foxglove.messages import LinePrimitive, LinePrimitiveLineType, Point3, SceneEntity, SpherePrimitive, Vector3
+def _points3(path_ned: np.ndarray) -> list:
+    from foxglove.messages import Point3
+
+    return [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in path_ned]
+
+
+def _track_entity(t_ns: int, name: str, path_ned: np.ndarray, color, points: list | None = None):
+    """The person at ``path_ned[-1]`` and its path ``path_ned``; ``points``: that path as Point3s already made
+    (:func:`_points3` of the whole track once, then picked per message)."""
+    from foxglove.messages import LinePrimitive, LinePrimitiveLineType, SceneEntity, SpherePrimitive, Vector3
 
     here = path_ned[-1]
     spheres = [SpherePrimitive(pose=_pose(here), size=Vector3(x=0.3, y=0.3, z=0.3), color=color)]
     lines = [LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=0.05, scale_invariant=False, color=color,
-                           points=[Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in path_ned])] \
-        if len(path_ned) > 1 else []
+                           points=_points3(path_ned) if points is None else points)] if len(path_ned) > 1 else []
     return SceneEntity(timestamp=_ts(t_ns), frame_id=NED, id=f"person/{name}", spheres=spheres, lines=lines)
 
 
@@ -288,23 +307,27 @@ def export_foxglove(
 
 
 def _export_drone(d: str, logs: SortieLogs, emit, ch, FrameTransforms, targets) -> int | None:
-    """One drone's transforms, calibrations, images and annotations; its target estimates into ``targets``."""
-    t_first = None
-    tfs = []
-    for s in logs.read_topic("state", VehicleState):
-        w, x, y, z = s.q_world_body
-        R = Rotation.from_quat([x, y, z, w]).as_matrix()
+    """One drone's transforms, calibrations, images and annotations; its target estimates into ``targets``. Two
+    passes over the recording: everything but the images (kept), then the images (streamed, one at a time)."""
+    got = logs.read_topics({"state": VehicleState, "camera_info": CameraInfo, "target": TargetEstimate,
+                            **{t: Detections for t in BOX_TOPICS}, **{t: Keypoints2D for t in KEYPOINT_TOPICS}})
+    states = got["state"]
+    if states:
+        q = np.array([s.q_world_body for s in states], dtype=float)  # (w, x, y, z)
+        quats = _quats(Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix())
+    for s, qs in zip(states, quats if states else []):
         t = s.header.t_measurement_ns
-        tfs.append(t)
-        emit(ch.FrameTransformsChannel, "/tf", FrameTransforms(transforms=[_tf(t, NED, f"{d}/body", R, np.asarray(s.position_ned_m))]), t)
-    t_first = min(tfs) if tfs else None
-    for info in logs.read_topic("camera_info", CameraInfo):
+        emit(ch.FrameTransformsChannel, "/tf", FrameTransforms(transforms=[
+            _tf(t, NED, f"{d}/body", None, np.asarray(s.position_ned_m), qs)]), t)
+    t_first = min(s.header.t_measurement_ns for s in states) if states else None
+    for info in got["camera_info"]:
         emit(ch.CameraCalibrationChannel, f"/{d}/camera/calibration", _calibration(info, f"{d}/camera"),
              info.header.t_measurement_ns)
-    _, dets = _by_frame(logs, BOX_TOPICS)
-    _, kps = _by_frame(logs, KEYPOINT_TOPICS)
+    _, dets = _by_frame(got, BOX_TOPICS)
+    _, kps = _by_frame(got, KEYPOINT_TOPICS)
     from foxglove.messages import CompressedImage
 
+    cam_t, cam_T = [], []
     for m in logs.messages(["camera/image"]):
         f = m.msg
         if not isinstance(f, CameraFrame):
@@ -317,15 +340,21 @@ def _export_drone(d: str, logs: SortieLogs, emit, ch, FrameTransforms, targets) 
             det = dets.get((f.camera_id, f.frame_index))
             T = np.asarray(det.T_world_cam, dtype=float).reshape(4, 4) if det is not None and len(det.T_world_cam) == 16 else None
         if T is not None:
-            emit(ch.FrameTransformsChannel, "/tf", FrameTransforms(transforms=[_tf(t, NED, f"{d}/camera", T[:3, :3], T[:3, 3])]), t)
+            cam_t.append(t)
+            cam_T.append(T)
         emit(ch.CompressedImageChannel, f"/{d}/camera/image",
              CompressedImage(timestamp=_ts(t), frame_id=f"{d}/camera", data=bytes(f.data), format=f.encoding), t)
         key = (f.camera_id, f.frame_index)
         emit(ch.ImageAnnotationsChannel, f"/{d}/camera/annotations", _annotations(t, dets.get(key), kps.get(key)), t)
-    have = {tp for fl in logs.logs for tp in fl.topic_counts()}
-    if "target" in have:
-        targets[d] = [(e.header.t_measurement_ns, np.asarray(e.position_ned_m, dtype=float))
-                      for e in logs.read_topic("target", TargetEstimate) if e.status in ("tracking", "predicting")]
+    if cam_T:  # the camera poses at the images' times, their rotations converted at once
+        cam_T = np.stack(cam_T)
+        for t, T, qc in zip(cam_t, cam_T, _quats(cam_T[:, :3, :3])):
+            emit(ch.FrameTransformsChannel, "/tf", FrameTransforms(transforms=[
+                _tf(t, NED, f"{d}/camera", None, T[:3, 3], qc)]), t)
+    targets_d = [(e.header.t_measurement_ns, np.asarray(e.position_ned_m, dtype=float))
+                 for e in got["target"] if e.status in ("tracking", "predicting")]
+    if got["target"]:
+        targets[d] = targets_d
     return t_first
 
 
@@ -344,11 +373,12 @@ def _export_track(flight: FlightFolder, targets: dict, emit, ch, keep: int) -> N
     palette = [(1.0, 0.85, 0.1), (0.1, 0.8, 0.9), (0.8, 0.3, 0.9), (0.3, 0.9, 0.3)]
     for i, (name, (t_ns, p)) in enumerate(sources.items()):
         color = _color(*palette[i % len(palette)])
+        pts = _points3(p)
         for k in range(len(t_ns)):
             lo = max(0, k + 1 - 10 * keep)
             idx = lo + _decimate(k + 1 - lo, keep)
-            emit(ch.SceneUpdateChannel, "/person/track",
-                 SceneUpdate(entities=[_track_entity(int(t_ns[k]), name, p[idx], color)]), int(t_ns[k]))
+            emit(ch.SceneUpdateChannel, "/person/track", SceneUpdate(entities=[
+                _track_entity(int(t_ns[k]), name, p[idx], color, [pts[j] for j in idx])]), int(t_ns[k]))
 
 
 def _export_truth(flight: FlightFolder, drone_ids: list[str], emit, ch, keep: int) -> None:
@@ -363,11 +393,12 @@ def _export_truth(flight: FlightFolder, drone_ids: list[str], emit, ch, keep: in
         log.warning("Foxglove export: the simulator truth %s cannot be read (%s); no /person/truth", flight.truth_path, e)
         return
     color = _color(0.2, 1.0, 0.4, 0.6)
+    pts = _points3(person)
     for k in range(len(t_ns)):
         lo = max(0, k + 1 - 10 * keep)
         idx = lo + _decimate(k + 1 - lo, keep)
-        emit(ch.SceneUpdateChannel, "/person/truth", SceneUpdate(entities=[_track_entity(int(t_ns[k]), "truth", person[idx], color)]),
-             int(t_ns[k]))
+        emit(ch.SceneUpdateChannel, "/person/truth", SceneUpdate(entities=[
+            _track_entity(int(t_ns[k]), "truth", person[idx], color, [pts[j] for j in idx])]), int(t_ns[k]))
 
 
 # ------------------------------------------------------------------------------------------------ CLI

@@ -19,6 +19,7 @@ X = north, Y = up, Z = east (right-handed; OpenSim's and the BVH convention of Y
   the defaults. The scene's end frame (250 in a new scene, 10.4 s) is not changed by the default import; a longer
   motion is all imported (the action spans frames 1..N) but plays past frame 250 only after "Update Scene
   Duration" is ticked or the End frame set (README, Outputs). A BVH cannot carry the scene's frame range.
+  It is written in windows of :data:`BVH_WINDOW_FRAMES` frames (memory flat in the motion's length).
 * :func:`write_joints_trc` — OpenSim / Pose2Sim marker trajectories (TRC, tab-separated): marker names are the
   COCO-17 joint names, metres, Y-up (:func:`skycap.frames.ned_to_yup`), a constant ``DataRate`` (resampled
   to it when the frame times are not uniform).
@@ -43,11 +44,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from reconstruction.body import skeleton17 as sk
-from skycap.bvh import Skeleton, write_bvh
+from skycap.bvh import Skeleton, bvh_header, bvh_motion_lines, write_bvh
 from skycap.frames import R_YUP_NED, ned_to_yup
 from skycap.skeleton import COCO17_NAMES
 
-__all__ = ["BLENDER_FPS", "BVH_JOINT_FOR_COCO", "TRC_UNITS", "bvh_skeleton", "export_motion", "resample_joints",
+__all__ = ["BLENDER_FPS", "BVH_JOINT_FOR_COCO", "BVH_WINDOW_FRAMES", "TRC_UNITS", "bvh_skeleton", "export_motion", "resample_joints",
            "write_blender_bvh", "write_joints_bvh", "write_joints_csv", "write_joints_trc", "write_motion_npz"]
 
 log = logging.getLogger(__name__)
@@ -115,15 +116,23 @@ def _fit_skeleton(joints_ned: np.ndarray, shape: np.ndarray | None):
     return shape, np.asarray(R_root), np.asarray(R_loc), np.asarray(transl), err
 
 
-def _write_skeleton_bvh(path, shape, R_root, R_loc, transl, frame_time_s: float, units_per_m: float) -> Path:
-    skel, idx = bvh_skeleton(shape, units_per_m)
+_BVH_PRECISION = 5
+
+
+def _skeleton_channels(skel: Skeleton, idx: np.ndarray, R_root, R_loc, transl, units_per_m: float):
+    """(root position (T, 3) Y-up, local rotations (T, J, 3, 3)) of the BVH skeleton ``skel`` from the fit."""
     T = len(transl)
     R_all = np.broadcast_to(np.eye(3), (T, skel.num_joints, 3, 3)).copy()
     R_all[:, idx[0]] = R_YUP_NED @ R_root
     for slot, j in enumerate(sk.POSE_JOINTS):
         R_all[:, idx[j]] = R_loc[:, slot]
-    root = ned_to_yup(transl) * units_per_m
-    return write_bvh(path, skel, frame_time_s, root, R_all, rotation_order="ZYX", precision=5)
+    return ned_to_yup(transl) * units_per_m, R_all
+
+
+def _write_skeleton_bvh(path, shape, R_root, R_loc, transl, frame_time_s: float, units_per_m: float) -> Path:
+    skel, idx = bvh_skeleton(shape, units_per_m)
+    root, R_all = _skeleton_channels(skel, idx, R_root, R_loc, transl, units_per_m)
+    return write_bvh(path, skel, frame_time_s, root, R_all, rotation_order="ZYX", precision=_BVH_PRECISION)
 
 
 def resample_joints(joints_ned: np.ndarray, t_ns: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -148,8 +157,14 @@ def resample_joints(joints_ned: np.ndarray, t_ns: np.ndarray, rate_hz: float) ->
     return t_ns[0] + np.round(t_new * 1e9).astype(np.int64), out
 
 
+#: BVH frames that :func:`write_blender_bvh` computes and writes at a time (~43 s of motion at 24 fps: a few MB);
+#: its memory does not grow with the motion's length beyond the input and per-frame scalars
+BVH_WINDOW_FRAMES = 1024
+
+
 def write_blender_bvh(
-    path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray, shape: np.ndarray | None = None
+    path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray, shape: np.ndarray | None = None,
+    window_frames: int = BVH_WINDOW_FRAMES,
 ) -> tuple[Path, float]:
     """The BVH for Blender: metres, resampled to :data:`BLENDER_FPS` (module docstring: Blender's default import
     then gives the real size and the real speed). BVH frame ``i`` (Blender frame ``1 + i``) is the motion at
@@ -160,14 +175,23 @@ def write_blender_bvh(
     skeleton (interpolating joint positions between frames 0.3 s apart would shorten the limbs by up to decimetres)
     and the BVH equals the fit at the recorded times. Returns (path, max_error_m) as :func:`write_joints_bvh`: the
     fit's largest joint distance from the input at the recorded frames.
+
+    Streamed: ``window_frames`` BVH frames at a time are fitted (the recorded frames around them), resampled and
+    appended to the file, so a long motion needs no more memory than a short one (the skeleton's ``shape``, when not
+    given, is still estimated from all frames: it must be one for the whole file). Every window computes exactly what
+    one pass over the whole motion would (each BVH frame depends only on the two recorded frames around it).
     """
     joints_ned = np.asarray(joints_ned, dtype=float)
     t_ns = np.asarray(t_ns, dtype=np.int64)
     if len(t_ns) != len(joints_ned):
         raise ValueError(f"t_ns has {len(t_ns)} times for {len(joints_ned)} frames of joints")
+    if joints_ned.ndim != 3 or joints_ned.shape[1:] != (17, 3):
+        raise ValueError(f"joints_ned must be (T, 17, 3), got {joints_ned.shape}")
+    if window_frames < 1:
+        raise ValueError(f"window_frames must be >= 1, got {window_frames}")
     # frames without every joint, or not later than the frame before, are left out (the motion is interpolated
     # across them) so that one bad frame does not cost the file
-    keep = np.all(np.isfinite(joints_ned), axis=(1, 2)) if joints_ned.ndim == 3 else np.ones(len(t_ns), bool)
+    keep = np.all(np.isfinite(joints_ned), axis=(1, 2))
     t_max = np.maximum.accumulate(np.where(keep, t_ns, np.iinfo(np.int64).min))
     keep[1:] &= t_ns[1:] > t_max[:-1]
     if not keep.any():
@@ -176,17 +200,47 @@ def write_blender_bvh(
         log.warning("BVH export: left out %d of %d frames (a joint not finite, or a time not after the one before)",
                     int((~keep).sum()), len(keep))
     t_first = int(t_ns[0])
-    joints_ned, t_ns = joints_ned[keep], t_ns[keep]
-    shape, R_root, R_loc, transl, err = _fit_skeleton(joints_ned, shape)
-    if len(t_ns) > 1:
-        t_s = (t_ns - t_first) * 1e-9
-        t_new = np.arange(int(np.floor(t_s[-1] * BLENDER_FPS + 1e-9)) + 1) / BLENDER_FPS
-        t_new = np.clip(t_new, t_s[0], t_s[-1])  # held before the first kept frame
-        R_root = Slerp(t_s, Rotation.from_matrix(R_root))(t_new).as_matrix()
-        R_loc = np.stack([Slerp(t_s, Rotation.from_matrix(R_loc[:, j]))(t_new).as_matrix()
-                          for j in range(R_loc.shape[1])], axis=1)
-        transl = np.stack([np.interp(t_new, t_s, transl[:, a]) for a in range(3)], axis=-1)
-    return _write_skeleton_bvh(path, shape, R_root, R_loc, transl, 1.0 / BLENDER_FPS, 1.0), err
+    kept = np.flatnonzero(keep)
+    t_s = (t_ns[kept] - t_first) * 1e-9
+    shape = sk.estimate_shape(joints_ned[kept]) if shape is None else np.asarray(shape, dtype=float)
+    skel, idx = bvh_skeleton(shape, 1.0)
+    n_out = int(np.floor(t_s[-1] * BLENDER_FPS + 1e-9)) + 1 if len(kept) > 1 else 1
+    path = Path(path)
+    err = 0.0
+    with open(path, "w") as f:
+        f.write(bvh_header(skel, 1.0 / BLENDER_FPS, n_out, rotation_order="ZYX", precision=_BVH_PRECISION))
+        for a in range(0, n_out, window_frames):
+            b = min(n_out, a + window_frames)
+            if len(kept) > 1:
+                t_new = np.clip(np.arange(a, b) / BLENDER_FPS, t_s[0], t_s[-1])  # held before the first kept frame
+                # the recorded frames bracketing these times, one more on each side: each interval is slerped as in
+                # one pass over the whole motion (a time on the last frame of a part would otherwise be reached from
+                # the interval before it)
+                lo = max(0, int(np.searchsorted(t_s, t_new[0], side="right")) - 2)
+                hi = min(len(t_s), int(np.searchsorted(t_s, t_new[-1], side="left")) + 2)
+            else:
+                lo, hi = 0, 1
+            R_root, R_loc, transl, e = _fit_frames(joints_ned[kept[lo:hi]], shape)
+            err = max(err, e)
+            if len(kept) > 1:
+                ts = t_s[lo:hi]
+                R_root = Slerp(ts, Rotation.from_matrix(R_root))(t_new).as_matrix()
+                R_loc = np.stack([Slerp(ts, Rotation.from_matrix(R_loc[:, j]))(t_new).as_matrix()
+                                  for j in range(R_loc.shape[1])], axis=1)
+                transl = np.stack([np.interp(t_new, ts, transl[:, k]) for k in range(3)], axis=-1)
+            root, R_all = _skeleton_channels(skel, idx, R_root, R_loc, transl, 1.0)
+            f.write(bvh_motion_lines(skel, root, R_all, rotation_order="ZYX", precision=_BVH_PRECISION))
+    if err > 1e-3:
+        log.warning("BVH export: joints are not a rigid skeleton; largest joint deviation %.1f mm", err * 1e3)
+    return path, err
+
+
+def _fit_frames(joints_ned: np.ndarray, shape: np.ndarray):
+    """(R_root, R_loc, transl, max_error_m) of the rigid skeleton ``shape`` on these frames (inverse kinematics)."""
+    R_root, R_loc, transl = sk.inverse_kinematics(joints_ned, shape)
+    back = sk.forward_kinematics_np(R_root, R_loc, transl, shape)[:, sk.COCO_TO_NODE]
+    err = float(np.max(np.linalg.norm(back - joints_ned, axis=-1)))
+    return np.asarray(R_root), np.asarray(R_loc), np.asarray(transl), err
 
 
 def write_joints_trc(path: str | Path, joints_ned: np.ndarray, t_ns: np.ndarray, rate_hz: float | None = None) -> Path:

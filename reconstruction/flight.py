@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from reconstruction.capture import CameraCapture, Capture, CaptureError
-from skycap.frames import T_world_cam_from_pose, intrinsics_matrix
+from skycap.frames import R_BODY_CAM_FORWARD, intrinsics_matrix, make_T
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +51,22 @@ READER_VERSION = 2
 
 
 def _yaw_only(R: np.ndarray) -> np.ndarray:
-    yaw = np.arctan2(R[1, 0], R[0, 0])
+    """Rotations (..., 3, 3) -> the rotations about the down axis by their yaw."""
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
     c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = np.zeros(yaw.shape + (3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1], out[..., 2, 2] = c, -s, s, c, 1.0
+    return out
+
+
+def T_world_cam_from_poses(position_ned_m: np.ndarray, R_world_body: np.ndarray, gimbal_pitch_rad: np.ndarray,
+                           gimbal_yaw_rad: np.ndarray, lever_arm_body_m: np.ndarray) -> np.ndarray:
+    """:func:`skycap.frames.T_world_cam_from_pose` of N poses at once: positions (N, 3), R_world_body (N, 3, 3),
+    gimbal angles (N,), lever arms (N, 3) -> T_world_cam (N, 4, 4) (the same numbers, one scipy call)."""
+    R_gimbal = Rotation.from_euler("ZY", np.stack([gimbal_yaw_rad, gimbal_pitch_rad], -1)).as_matrix()
+    R_wc = R_world_body @ (R_gimbal @ R_BODY_CAM_FORWARD)
+    t = position_ned_m + np.einsum("nij,nj->ni", R_world_body, lever_arm_body_m)
+    return make_T(R_wc, t)
 
 
 def undistort_keypoints(uv_px: np.ndarray, confidence: np.ndarray, t_frame_ns: np.ndarray, infos: Sequence,
@@ -139,14 +152,17 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
     paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
     flog = SortieLogs(paths)
     path = ", ".join(str(p) for p in paths)  # for the messages
-    states = flog.read_topic("state", VehicleState)
-    infos = flog.read_topic("camera_info", CameraInfo)
-    gimbal = _gimbal_track(flog.read_topic("gimbal", GimbalAttitude)) if gimbal_stabilised else None
+    wanted = {"state": VehicleState, "camera_info": CameraInfo}
+    if gimbal_stabilised:
+        wanted["gimbal"] = GimbalAttitude
+    if keypoints is None:
+        wanted.update({"keypoints2d": Keypoints2D, "sim/keypoints2d": Keypoints2D})
+    got = flog.read_topics(wanted)  # one pass over the files: their chunks also hold the images
+    states, infos = got["state"], got["camera_info"]
+    gimbal = _gimbal_track(got["gimbal"]) if gimbal_stabilised else None
     kps = None
     if keypoints is None:
-        kps = flog.read_topic("keypoints2d", Keypoints2D)
-        if not kps:
-            kps = flog.read_topic("sim/keypoints2d", Keypoints2D)
+        kps = got["keypoints2d"] or got["sim/keypoints2d"]
     name = name or paths[0].name.split(".")[0]
     if not states:
         raise CaptureError(f"{path}: no 'state' messages; the drone's pose is needed for every camera")
@@ -159,29 +175,33 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
     t_info = np.array([m.header.t_measurement_ns for m in infos], dtype=np.int64)
     K = np.stack([intrinsics_matrix(m.fx_px, m.fy_px, m.cx_px, m.cy_px) for m in infos])
     states = sorted(states, key=lambda m: m.header.t_measurement_ns)
-    t_pose, T_list, ps, rs, vel, vs = [], [], [], [], [], []
-    for s in states:
-        t = s.header.t_measurement_ns
-        if t_pose and t <= t_pose[-1]:
-            continue
-        i = int(np.clip(np.searchsorted(t_info, t, side="right") - 1, 0, len(infos) - 1))
-        w, x, y, z = s.q_world_body
-        R = Rotation.from_quat([x, y, z, w]).as_matrix()
-        lever = np.asarray(infos[i].T_body_cam, dtype=float).reshape(4, 4)[:3, 3] if len(infos[i].T_body_cam) == 16 else None
-        pos = np.array(s.position_ned_m)
-        if position_offset is not None:
-            pos = pos - np.array([np.interp(t, position_offset[0], position_offset[1][:, k]) for k in range(3)])
-        g_pitch, g_yaw = infos[i].gimbal_pitch_rad, infos[i].gimbal_yaw_rad
-        if gimbal is not None:  # the gimbal's own reports at this pose time
-            g_pitch, g_yaw = float(np.interp(t, gimbal[0], gimbal[1])), float(np.interp(t, gimbal[0], gimbal[2]))
-        T_list.append(T_world_cam_from_pose(pos, _yaw_only(R) if gimbal_stabilised else R,
-                                            g_pitch, g_yaw, lever))  # fmt: skip
-        t_pose.append(t)
-        ps.append(float(np.sqrt(np.sum(s.position_cov_m2))))
-        rs.append(float(np.degrees(np.sqrt(np.sum(s.attitude_cov_rad2)))))
-        # the camera moves with the body (the lever arm's rotational velocity, centimetres per second, is left out)
-        vel.append(s.velocity_ned_m_s)
-        vs.append(float(np.sqrt(np.sum(s.velocity_cov_m2_s2))))
+    kept, last = [], None
+    for s in states:  # one pose per time
+        if last is None or s.header.t_measurement_ns > last:
+            kept.append(s)
+            last = s.header.t_measurement_ns
+    states = kept
+    # all pose samples at once (a per-sample scipy call was a large part of reading a drone's log)
+    t_pose = np.array([s.header.t_measurement_ns for s in states], dtype=np.int64)
+    which = np.clip(np.searchsorted(t_info, t_pose, side="right") - 1, 0, len(infos) - 1)
+    q = np.array([s.q_world_body for s in states], dtype=float)  # (w, x, y, z)
+    R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
+    levers = np.array([np.asarray(m.T_body_cam, dtype=float).reshape(4, 4)[:3, 3] if len(m.T_body_cam) == 16
+                       else np.zeros(3) for m in infos])[which]
+    pos = np.array([s.position_ned_m for s in states], dtype=float)
+    if position_offset is not None:
+        pos = pos - np.stack([np.interp(t_pose, position_offset[0], position_offset[1][:, k]) for k in range(3)], -1)
+    if gimbal is not None:  # the gimbal's own reports at the pose times
+        g_pitch, g_yaw = np.interp(t_pose, gimbal[0], gimbal[1]), np.interp(t_pose, gimbal[0], gimbal[2])
+    else:
+        g_pitch = np.array([m.gimbal_pitch_rad for m in infos], dtype=float)[which]
+        g_yaw = np.array([m.gimbal_yaw_rad for m in infos], dtype=float)[which]
+    T_world_cam = T_world_cam_from_poses(pos, _yaw_only(R) if gimbal_stabilised else R, g_pitch, g_yaw, levers)
+    ps = np.sqrt(np.array([s.position_cov_m2 for s in states], dtype=float).sum(axis=1))
+    rs = np.degrees(np.sqrt(np.array([s.attitude_cov_rad2 for s in states], dtype=float).sum(axis=1)))
+    # the camera moves with the body (the lever arm's rotational velocity, centimetres per second, is left out)
+    vel = [s.velocity_ned_m_s for s in states]
+    vs = np.sqrt(np.array([s.velocity_cov_m2_s2 for s in states], dtype=float).sum(axis=1))
     if keypoints is not None:
         t_kp, detectors, uv, conf = keypoints
         frames, detectors = [int(t) for t in t_kp], list(detectors)
@@ -207,8 +227,8 @@ def read_drone_log(paths: str | Path | Sequence[str | Path], gimbal_stabilised: 
         vel_a, vs_a = None, None
     return CameraCapture(
         vel_world_mps=vel_a, vel_sigma_mps=vs_a,
-        name=name, t_pose_ns=np.array(t_pose), T_world_cam=np.stack(T_list), pos_sigma_m=np.array(ps),
-        rot_sigma_deg=np.array(rs), t_intrinsics_ns=t_info, K=K, width_px=infos[-1].width_px,
+        name=name, t_pose_ns=t_pose, T_world_cam=T_world_cam, pos_sigma_m=ps,
+        rot_sigma_deg=rs, t_intrinsics_ns=t_info, K=K, width_px=infos[-1].width_px,
         height_px=infos[-1].height_px, t_frame_ns=np.array(frames, dtype=np.int64), keypoints_px=uv,
         confidence=conf, detectors=tuple(detectors),
     )  # fmt: skip

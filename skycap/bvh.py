@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from skycap.errors import SkycapError
 
-__all__ = ["BvhError", "Skeleton", "BvhMotion", "read_bvh", "write_bvh", "forward_kinematics"]
+__all__ = ["BvhError", "Skeleton", "BvhMotion", "bvh_header", "bvh_motion_lines", "read_bvh", "write_bvh", "forward_kinematics"]
 
 
 class BvhError(SkycapError):
@@ -244,10 +244,18 @@ def write_bvh(
     rotations only (``rotation_order`` e.g. "ZYX" -> ``Zrotation Yrotation Xrotation``).
 
     Shapes: root_position (T, 3) in the skeleton's units; R_local (T, J, 3, 3) local rotations
-    (ignored for End Sites). ``skeleton.channels`` is ignored and rewritten.
+    (ignored for End Sites). ``skeleton.channels`` is ignored and rewritten. A long motion can be written in parts
+    with the same result: :func:`bvh_header` with the total frame count, then :func:`bvh_motion_lines` per part.
     """
     path = Path(path)
-    T = root_position.shape[0]
+    header = bvh_header(skeleton, frame_time_s, root_position.shape[0], rotation_order, precision)
+    path.write_text(header + bvh_motion_lines(skeleton, root_position, R_local, rotation_order, precision))
+    return path
+
+
+def bvh_header(skeleton: Skeleton, frame_time_s: float, num_frames: int, rotation_order: str = "ZYX",
+               precision: int = 6) -> str:
+    """The text of a BVH file before its frames: the hierarchy, ``MOTION``, ``Frames:`` and ``Frame Time:``."""
     J = skeleton.num_joints
     rot_ch = [f"{a}rotation" for a in rotation_order]
     lines = ["HIERARCHY"]
@@ -268,19 +276,28 @@ def write_bvh(
             emit(c, depth + 1)
         lines.append(f"{ind}}}")
 
-    roots = [j for j in range(J) if skeleton.parents[j] < 0]
-    if len(roots) != 1:
-        raise BvhError(f"a BVH skeleton needs exactly one root, got {len(roots)}")
-    emit(roots[0], 0)
-    movers = [j for j in _dfs_order(skeleton, roots[0]) if not skeleton.end_site[j]]
+    emit(_root(skeleton), 0)
+    lines += ["MOTION", f"Frames: {num_frames}", f"Frame Time: {frame_time_s:.6f}"]
+    return "\n".join(lines) + "\n"
+
+
+def bvh_motion_lines(skeleton: Skeleton, root_position: np.ndarray, R_local: np.ndarray, rotation_order: str = "ZYX",
+                     precision: int = 6) -> str:
+    """The frame lines (each ending in a newline) of root positions (T, 3) and local rotations (T, J, 3, 3)."""
+    T = root_position.shape[0]
+    movers = [j for j in _dfs_order(skeleton, _root(skeleton)) if not skeleton.end_site[j]]
     euler = Rotation.from_matrix(R_local[:, movers].reshape(-1, 3, 3)).as_euler(rotation_order, degrees=True)
     euler = euler.reshape(T, len(movers), 3)
     data = np.concatenate([root_position.reshape(T, 3), euler.reshape(T, -1)], axis=1)
-    lines += ["MOTION", f"Frames: {T}", f"Frame Time: {frame_time_s:.6f}"]
     fmt = f"%.{precision}f"
-    body = "\n".join(" ".join(fmt % v for v in row) for row in data)
-    path.write_text("\n".join(lines) + "\n" + body + "\n")
-    return path
+    return "\n".join(" ".join(fmt % v for v in row) for row in data) + "\n"
+
+
+def _root(skeleton: Skeleton) -> int:
+    roots = [j for j in range(skeleton.num_joints) if skeleton.parents[j] < 0]
+    if len(roots) != 1:
+        raise BvhError(f"a BVH skeleton needs exactly one root, got {len(roots)}")
+    return roots[0]
 
 
 def _dfs_order(skeleton: Skeleton, j: int) -> list[int]:

@@ -58,6 +58,7 @@ from reconstruction.body.model import BodyModel, SkeletonBodyModel
 from reconstruction.capture import Capture
 from reconstruction.multiview.offsets import body_frame, body_frame_torch, load_offsets
 from reconstruction.multiview.observations import camera_track, fill_gaps, gather, interpolate_to_grid, median_in_time, reject_blunders, triangulate
+from reconstruction.optim import Adam, OneCycle
 from reconstruction.prior import PosePrior, load_default_prior
 from skycap.skeleton import COCO17_FLIP
 
@@ -387,14 +388,14 @@ def _fit_product(capture, t_grid, cfg, model, prior, progress, start, t_start) -
         groups += [{"params": [dw], "lr": cfg.lr * 0.25}, {"params": [dp], "lr": cfg.lr}]
     if ro_ is not None:
         groups += [{"params": [gyro_bias], "lr": cfg.lr * 0.01}]
-    opt = torch.optim.Adam(groups)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups], total_steps=cfg.iters, pct_start=0.15)
+    opt = Adam(groups)  # torch.optim.Adam's numbers without its seconds-long torch._dynamo import (reconstruction.optim)
+    sched = OneCycle(opt, total_steps=cfg.iters, pct_start=0.15, max_lr=[g["lr"] for g in groups])
     bar = tqdm(range(cfg.iters), desc="fit (product)", disable=progress is not True, leave=False)
     for i in bar:
         _report(progress, "fit", i, cfg.iters)
         # robust scale annealed from sigma_px_start to sigma_px_end over the first 60 % of the steps
         sig = cfg.sigma_px_end + (cfg.sigma_px_start - cfg.sigma_px_end) * max(0.0, 1 - i / (0.6 * cfg.iters))
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad()
         E = energy(sig)
         E.backward()
         opt.step()
@@ -641,9 +642,9 @@ def _fit_paper(capture, t_grid, cfg, model, prior, progress, start, t_start) -> 
         v_p = (p_tilde / cfg.paper_unit_cam_pos_m).clone().requires_grad_()
         first = ti == 0
         n_it, lr = (cfg.paper_first_iters, cfg.paper_first_lr) if first else (cfg.paper_iters, cfg.paper_lr)
-        opt = torch.optim.Adam([v_ro, v_pose, v_tr, v_sh, v_r, v_p], lr=lr)
+        opt = Adam([v_ro, v_pose, v_tr, v_sh, v_r, v_p], lr=lr)
         for _ in range(n_it):
-            opt.zero_grad(set_to_none=True)
+            opt.zero_grad()
             ro, pose, tr, shape = v_ro * u[0], v_pose * u[1], v_tr * u[2], v_sh * u[3]
             r, p = v_r * cfg.paper_unit_cam_rot_rad, v_p * cfg.paper_unit_cam_pos_m
             X = model(ro, pose, tr, shape[0])  # (1, 17, 3)

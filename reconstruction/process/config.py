@@ -77,10 +77,18 @@ class WindowsConfig:
 class ExportConfig:
     """Outputs: ``motion.{bvh,npz,csv,trc}`` (+ ``motion.rrd`` with ``rrd``), and the named ``extra`` exporters
     registered with :func:`reconstruction.process.export.register_exporter` (default: ``foxglove``, the processed
-    flight as ``flight.foxglove.mcap``)."""
+    flight as ``flight.foxglove.mcap``); the rerun recording and the extra exporters run in ``workers`` threads or
+    processes (``pool``) beside the motion files (:func:`reconstruction.process.export.export_all`)."""
 
     rrd: bool = True
     extra: list[str] = dataclasses.field(default_factory=lambda: ["foxglove"])
+    #: workers that write the rerun recording and the extra exporters' files while the motion files are written
+    #: (the outputs do not depend on it); 0 = everything in the calling thread, one after the other
+    workers: int = 2
+    #: "threads" (default: no start-up cost; the Rust writers of rerun and Foxglove, file I/O and decompression run
+    #: beside Python) or "processes" (spawned: every exporter's Python in parallel, but each worker first imports
+    #: numpy / scipy / rerun / foxglove, seconds on a loaded machine)
+    pool: str = "threads"
 
 
 @dataclasses.dataclass

@@ -47,7 +47,7 @@ from reconstruction.process.boxes import SOURCE_NAMES, compute_boxes, smoother_b
 from reconstruction.process.cache import atomic_write_json, atomic_write_npz, file_identity, make_key, read_npz, remove_tree
 from reconstruction.process.config import ProcessConfig
 from reconstruction.process.events import Cancelled, ProcessError, ProgressSink, StepProgress
-from reconstruction.process.export import ExportContext, run_exporters, standard_outputs
+from reconstruction.process.export import ExportContext, export_all
 from reconstruction.process.frames import frame_table, has_images
 from reconstruction.process.keypoints import compute_keypoints, fuse_keypoints, load_models
 from reconstruction.process.windows import plan_windows, stitch
@@ -242,21 +242,24 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
         out = Path(cfg.out_dir) if cfg.out_dir else flight.reconstruction_dir(method)
         ctx = ExportContext(flight=flight, out_dir=out, t_ns=t_ns, joints_ned=joints, capture=capture, method=method,
                             config=cfg, keypoints_source=keypoints_source, boxes=boxes, params=params, shape=shape)
-        exp_key = make_key("export", CACHE_VERSION, fit_key, cfg.export, str(out.resolve()))
+        exp_key = make_key("export", CACHE_VERSION, fit_key, dataclasses.replace(cfg.export, workers=0, pool=""),
+                           str(out.resolve()))  # how the exporters run does not change the files
         marker = step_dir("export") / f"{exp_key}.json"
         prev = _read_marker(marker)
+        exporter_s: dict[str, float] = {}
         if prev is not None:
             paths = prev
         else:
             out.mkdir(parents=True, exist_ok=True)
-            paths = standard_outputs(ctx, cfg.export.rrd)
-            paths.update(run_exporters(ctx, cfg.export.extra))
+            paths, exporter_s = export_all(ctx, cfg.export.rrd, cfg.export.extra, cfg.export.workers, sp.check_cancel,
+                                           cfg.export.pool)
             capture.save(out / "capture.npz")
             from skycap.config import save_config
 
             save_config(cfg, out / "config.toml")
             atomic_write_json(marker, {k: str(v) for k, v in paths.items()})
-        steps["export"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": prev is not None}
+        steps["export"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": prev is not None,
+                           "exporters": exporter_s}
         seconds = time.perf_counter() - t_begin
         span_s = float((t_ns[-1] - t_ns[0]) * 1e-9) if len(t_ns) > 1 else 0.0
         flight_s = _flight_seconds(capture)
