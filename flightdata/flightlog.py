@@ -127,15 +127,26 @@ class FlightLog:
     def read_topic(self, topic: str, expected: type[M] | None = None) -> list[M]:
         """All decoded messages of one topic in log-time order (also for crash-truncated files);
         ``expected`` checks their type (FlightLogError otherwise)."""
-        out = []
-        for m in self.messages([topic]):
+        return self.read_topics({topic: expected})[topic]
+
+    def read_topics(self, types: dict[str, type | None]) -> dict[str, list]:
+        """Several topics in one pass over the file -> {topic: decoded messages in log-time order}; ``types[topic]``
+        (None: any) checks each message's type (FlightLogError otherwise). One pass instead of one per topic: a
+        recording's chunks interleave the camera images with everything else, so every pass decompresses and walks
+        them all."""
+        rows: dict[str, list] = {t: [] for t in types}
+        for m in self.messages(list(types)):
+            expected = types[m.topic]
             if expected is not None and not isinstance(m.msg, expected):
                 raise FlightLogError(
-                    f"{self.path}: topic {topic!r} holds {type(m.msg).__name__}, expected {expected.__name__}"
+                    f"{self.path}: topic {m.topic!r} holds {type(m.msg).__name__}, expected {expected.__name__}"
                 )
-            out.append((m.log_time_ns, m.msg))
-        out.sort(key=lambda x: x[0])  # stable: equal times keep file order
-        return [msg for _, msg in out]
+            rows[m.topic].append((m.log_time_ns, m.msg))
+        out = {}
+        for t, r in rows.items():
+            r.sort(key=lambda x: x[0])  # stable: equal times keep file order
+            out[t] = [msg for _, msg in r]
+        return out
 
     def topic_counts(self) -> dict[str, int]:
         """Number of messages per topic (from the summary when finalised, else by reading)."""
@@ -253,22 +264,12 @@ class SortieLogs:
         return [m for fl in self.logs for m in fl.read_topic(topic, expected)]
 
     def read_topics(self, types: dict[str, type | None]) -> dict[str, list]:
-        """Several topics in one pass over each file -> {topic: decoded messages}, each topic exactly as
-        ``read_topic(topic, types[topic])`` gives it (log-time order within a file, files in order). One pass
-        instead of one per topic: a recording's chunks interleave the camera images with everything else, so
-        every pass decompresses and walks them all."""
+        """:meth:`FlightLog.read_topics` of every file, each topic concatenated in file order (each exactly as
+        ``read_topic(topic, types[topic])`` gives it)."""
         out: dict[str, list] = {t: [] for t in types}
         for fl in self.logs:
-            rows: dict[str, list] = {t: [] for t in types}
-            for m in fl.messages(list(types)):
-                expected = types[m.topic]
-                if expected is not None and not isinstance(m.msg, expected):
-                    raise FlightLogError(f"{fl.path}: topic {m.topic!r} holds {type(m.msg).__name__}, expected "
-                                         f"{expected.__name__}")
-                rows[m.topic].append((m.log_time_ns, m.msg))
-            for t, r in rows.items():
-                r.sort(key=lambda x: x[0])  # stable: equal times keep file order, as read_topic
-                out[t].extend(msg for _, msg in r)
+            for t, msgs in fl.read_topics(types).items():
+                out[t].extend(msgs)
         return out
 
 
