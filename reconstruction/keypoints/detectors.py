@@ -63,6 +63,16 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-x))
 
 
+def network_input(name: str, crops_u8: np.ndarray) -> np.ndarray:
+    """uint8 RGB crops (n, S, S, 3) -> the input the network ``name`` takes: MoveNet int32 0..255, BlazePose's pose
+    detector float32 in [-1, 1], BlazePose's landmarks float32 in [0, 1]."""
+    if name.startswith("movenet"):
+        return crops_u8.astype(np.int32)
+    if name.startswith("blazepose_detector"):
+        return crops_u8.astype(np.float32) * (2.0 / 255.0) - 1.0
+    return crops_u8.astype(np.float32) * (1.0 / 255.0)
+
+
 def roi_transform(center_xy, side_px: float, size_px: int, up_xy=(0.0, -1.0)) -> np.ndarray:
     """Affine (2, 3) matrix mapping full-image pixels to a ``size_px`` square crop.
 
@@ -184,7 +194,7 @@ class MoveNet(KeypointModel):
     def _run(self, crops_rgb: np.ndarray) -> np.ndarray:
         out = np.empty((len(crops_rgb), 17, 3), np.float32)
         for i, c in enumerate(crops_rgb):
-            y = self.session.run(self.output_names, {self.input_name: c[None].astype(np.int32)})[0][0, 0]
+            y = self.session.run(self.output_names, {self.input_name: network_input(self.name, c[None])})[0][0, 0]
             out[i, :, 0] = y[:, 1] * self.input_px - 0.5
             out[i, :, 1] = y[:, 0] * self.input_px - 0.5
             out[i, :, 2] = y[:, 2]
@@ -231,7 +241,7 @@ class BlazePose(KeypointModel):
         self.anchors = _pose_detector_anchors()
 
     def _run(self, crops_rgb: np.ndarray) -> np.ndarray:
-        x = crops_rgb.astype(np.float32) * (1.0 / 255.0)
+        x = network_input(self.name, crops_rgb)
         res = dict(zip(self.output_names, self.session.run(self.output_names, {self.input_name: x})))
         ld = res["ld_3d"].reshape(len(crops_rgb), 39, 5)[:, BLAZEPOSE_TO_COCO17]
         flag = res["output_poseflag"].reshape(-1, 1)
@@ -249,7 +259,7 @@ class BlazePose(KeypointModel):
         rois: list[np.ndarray | None] = []
         for i in range(0, len(mats), max(1, batch_size)):
             chunk = list(zip(images[i : i + batch_size], mats[i : i + batch_size]))
-            x = np.stack([warp_crop(img, A, S) for img, A in chunk]).astype(np.float32) * (2.0 / 255.0) - 1.0
+            x = network_input("blazepose_detector", np.stack([warp_crop(img, A, S) for img, A in chunk]))
             raw = self.det_session.run(None, {self.det_input: x})[0]  # (n, 2254, 13): score logit, 12 regressors
             for (_, A), r in zip(chunk, raw):
                 k = int(np.argmax(r[:, 0]))
@@ -311,7 +321,7 @@ class BlazePose(KeypointModel):
                 if A is None:
                     A = box_transform(b, S, self.crop_scale)
             crop = warp_crop(img, A, S)
-            x = crop[None].astype(np.float32) * (1.0 / 255.0)
+            x = network_input(self.name, crop[None])
             res = dict(zip(self.output_names, self.session.run(self.output_names, {self.input_name: x})))
             ld = res["ld_3d"].reshape(39, 5)
             flag = float(np.clip(res["output_poseflag"].reshape(-1)[0], 0.0, 1.0))

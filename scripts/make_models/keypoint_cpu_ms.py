@@ -21,15 +21,6 @@ import time
 import numpy as np
 
 
-def network_input(name: str, crops_u8: np.ndarray) -> np.ndarray:
-    """uint8 RGB crops -> the network's input, as reconstruction.keypoints.detectors feeds it."""
-    if name.startswith("movenet"):
-        return crops_u8.astype(np.int32)
-    if name.startswith("blazepose_detector"):
-        return crops_u8.astype(np.float32) * (2.0 / 255.0) - 1.0
-    return crops_u8.astype(np.float32) * (1.0 / 255.0)
-
-
 def cpu_ms_per_crop(path: str, x: np.ndarray, n: int) -> tuple[float, float]:
     from onboard.detector.modelfile import ThreadSettings
     import onnxruntime as ort
@@ -58,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n", type=int, default=60)
     ap.add_argument("files", nargs="+", help="NETWORK=FILE")
     a = ap.parse_args(argv)
+    from reconstruction.keypoints.detectors import network_input
+
     z = np.load(a.crops)
     for spec in a.files:
         net, path = spec.split("=", 1)

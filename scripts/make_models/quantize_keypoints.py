@@ -55,15 +55,6 @@ def fold_fp16_casts(model):
     return model
 
 
-def network_input(name: str, crops_u8: np.ndarray) -> np.ndarray:
-    """uint8 RGB crops -> the network's input, as reconstruction.keypoints.detectors feeds it."""
-    if name.startswith("movenet"):
-        return crops_u8.astype(np.int32)
-    if name.startswith("blazepose_detector"):
-        return crops_u8.astype(np.float32) * (2.0 / 255.0) - 1.0
-    return crops_u8.astype(np.float32) * (1.0 / 255.0)
-
-
 class CropReader:
     """onnxruntime CalibrationDataReader over recorded crops, one crop per call."""
 
@@ -74,6 +65,8 @@ class CropReader:
     def get_next(self):
         if self.i >= len(self.crops):
             return None
+        from reconstruction.keypoints.detectors import network_input
+
         x = network_input(self.name, self.crops[self.i : self.i + 1])
         self.i += 1
         return {self.input_name: x}
