@@ -33,7 +33,7 @@ from reconstruction.process.events import ProcessError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EXPORTERS", "ExportContext", "export_all", "register_exporter", "run_exporters"]
+__all__ = ["EXPORTERS", "ExportContext", "export_all", "register_exporter"]
 
 
 @dataclasses.dataclass
@@ -82,17 +82,6 @@ def export_foxglove_mcap(ctx: ExportContext) -> dict[str, Path]:
 register_exporter("foxglove", export_foxglove_mcap)
 
 
-def run_exporters(ctx: ExportContext, names: list[str]) -> dict[str, Path]:
-    out: dict[str, Path] = {}
-    for n in names:
-        fn = EXPORTERS.get(n)
-        if fn is None:
-            raise ProcessError(f"export.extra names {n!r}, which no exporter registered; registered: "
-                               f"{', '.join(sorted(EXPORTERS)) or 'none'} (reconstruction.process.export.register_exporter)")
-        out.update({k: Path(v) for k, v in fn(ctx).items()})
-    return out
-
-
 def _cameras(ctx: ExportContext) -> list[dict]:
     """The drones' camera poses at their frames within the motion (what the rerun recording draws)."""
     cams = []
@@ -103,14 +92,6 @@ def _cameras(ctx: ExportContext) -> list[dict]:
             cams.append({"name": cam.name, "t_ns": t, "T_world_cam": cam.pose_at(t), "K": cam.K[-1],
                          "width_px": cam.width_px, "height_px": cam.height_px})
     return cams
-
-
-def standard_outputs(ctx: ExportContext, rrd: bool) -> dict[str, Path]:
-    """``motion.{bvh,trc,npz,csv}`` (+ ``.rrd``) with the drones' camera poses at their frames, in this process."""
-    from reconstruction.export import export_motion
-
-    return export_motion(ctx.out_dir, ctx.joints_ned, ctx.t_ns, params=ctx.params, shape=ctx.shape,
-                         cameras=_cameras(ctx), capture=ctx.capture, rrd=rrd)
 
 
 def _timed(fn: Callable, *args) -> tuple[Any, float]:
@@ -204,7 +185,7 @@ def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2
                 log.warning("export: the worker process for %r died (%s); writing it in this process instead", n, e)
                 if check_cancel is not None:
                     check_cancel()
-                res, seconds[n] = _timed(EXPORTERS[n] if n in EXPORTERS else _rrd, ctx)
+                res, seconds[n] = _timed(dict(remote)[n], ctx)
             out.update({k: Path(v) for k, v in res.items()})
     finally:
         if executor is not None:
