@@ -27,6 +27,9 @@ class BoxesConfig:
     use_smoother: bool = True
     detector_fill: bool = True
     detector_threads: int = 1  #: onnxruntime intra-op threads of the person detector
+    #: drones whose box choice and detector re-runs run at once after the smoother (threads, each with its own
+    #: detector at ``detector_threads``); not part of the cache key (the same boxes)
+    workers: int = 2
     #: re-run the detector in gaps between boxed frames up to this long (s); longer gaps are left without a box
     detector_max_gap_s: float = 2.0
 
@@ -117,6 +120,9 @@ class ProcessConfig:
         bad = [m for m in k.models if m not in KEYPOINT_MODELS]
         if k.source == "models" and (not k.models or bad):
             raise ProcessError(f"keypoints.models={k.models}: name at least one of {', '.join(KEYPOINT_MODELS)}")
+        if self.boxes.workers < 1 or self.boxes.detector_threads < 1:
+            raise ProcessError(f"boxes.workers={self.boxes.workers} and boxes.detector_threads="
+                               f"{self.boxes.detector_threads} must be >= 1")
         if k.threads < 1 or k.workers < 1 or k.batch_size < 1 or k.chunk_frames < 1:
             raise ProcessError("keypoints.threads, workers, batch_size and chunk_frames must be >= 1")
         if not (w.window_s > 0 and 0 <= w.overlap_s < w.window_s and w.margin_s >= 0):

@@ -291,48 +291,90 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
 
 # ------------------------------------------------------------------------------------------------ steps
 def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, cancel, steps) -> dict[str, dict]:
+    """Each drone's boxes (cached per drone): the offline smoother once over all drones, then each drone's box choice
+    and detector re-runs in ``cfg.boxes.workers`` threads (each with its own detector; onnxruntime and the image
+    decoding release the GIL)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     t0 = time.perf_counter()
     sp = StepProgress("boxes", progress, cancel)
     sp.check_cancel()
     everyone = {d: ident[d] for d in drones} if cfg.boxes.use_smoother else {}
-    track = None
-    out, cached = {}, 0
-    det_cache = []
+    # the cache key leaves out how many threads compute the boxes (the same boxes)
+    box_cfg = {k: v for k, v in dataclasses.asdict(cfg.boxes).items() if k != "workers"}
+    local = threading.local()
+    lock = threading.Lock()
 
     def detector():
-        if not det_cache:
+        if getattr(local, "detector", None) is None:
             from onboard.detector.detector import DetectorConfig, PersonDetector
 
-            det_cache.append(PersonDetector(DetectorConfig(threads=cfg.boxes.detector_threads)))
-        return det_cache[0]
+            local.detector = PersonDetector(DetectorConfig(threads=cfg.boxes.detector_threads))
+        return local.detector
 
     n = len(drones)
-    for i, d in enumerate(list(drones)):
-        key = make_key("boxes", CACHE_VERSION, ident[d], everyone, cfg.boxes, cfg.sortie)
-        path = step_dir("boxes") / f"{d}-{key}.npz"
-        z = read_npz(path)
-        hit = z is not None
+    out: dict[str, dict] = {}
+    paths, todo, cached = {}, [], 0
+    for d in drones:
+        key = make_key("boxes", CACHE_VERSION, ident[d], everyone, box_cfg, cfg.sortie)
+        paths[d] = (step_dir("boxes") / f"{d}-{key}.npz", key)
+        z = read_npz(paths[d][0])
         if z is None:
+            todo.append(d)
+        else:
+            out[d] = z
+            cached += 1
+    frac = {d: 1.0 for d in out}
+    if todo:
+        sp(0, 1, "offline smoother over every drone's detections" if cfg.boxes.use_smoother else "boxes")
+        track = smoother_boxes(flight, cfg.sortie_or_none) if cfg.boxes.use_smoother else {}
+
+        def tick(d, done, total, msg):
+            with lock:
+                frac[d] = done / total if total else 1.0
+                f = sum(frac.values()) / n
+            sp(f, 1.0, msg)
+
+        def one(d):
             try:
                 frames = frame_table(logs[d])
                 if not len(frames):
                     raise ProcessError("no camera frames")
-                if track is None:
-                    track = smoother_boxes(flight, cfg.sortie_or_none) if cfg.boxes.use_smoother else {}
                 z = compute_boxes(logs[d], d, frames, cfg.boxes, track.get(d), detector,
-                                  lambda done, total, msg, i=i: sp((i + done / total) / n, 1.0, msg))
+                                  lambda done, total, msg, d=d: tick(d, done, total, msg))
             except Exception as e:
                 if not _unreadable(e) and not isinstance(e, ProcessError):
                     raise
-                _skip(d, e, drones, skipped, "boxes")
-                continue
-            atomic_write_npz(path, key=key, **z)
-            z["key"] = np.array(key)
+                return e
+            atomic_write_npz(paths[d][0], key=paths[d][1], **z)
+            z["key"] = np.array(paths[d][1])
+            tick(d, 1, 1, f"{d}: boxes")
+            return z
+
+        workers = max(1, min(cfg.boxes.workers, len(todo)))
+        if workers == 1:
+            results = [one(d) for d in todo]
         else:
-            cached += 1
-        out[d] = z
-        sp(i + 1, n, f"{d}: boxes" + (" (cached)" if hit else ""))
-    steps["boxes"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": cached == n and n > 0}
+            with ThreadPoolExecutor(workers, thread_name_prefix="boxes") as pool:
+                futures = [pool.submit(one, d) for d in todo]
+                results, first_error = [], None
+                for f in futures:  # every thread ends (a cancel stops them all) before an error is raised
+                    try:
+                        results.append(f.result())
+                    except BaseException as e:
+                        first_error = first_error or e
+                        results.append(None)
+                if first_error is not None:
+                    raise first_error
+        for d, z in zip(todo, results):
+            if isinstance(z, BaseException):
+                _skip(d, z, drones, skipped, "boxes")
+            else:
+                out[d] = z
+    out = {d: out[d] for d in drones if d in out}  # the drones' order
+    sp(1, 1, "boxes" + (" (cached)" if not todo else ""))
+    steps["boxes"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": cached == n and n > 0,
+                      "workers": max(1, min(cfg.boxes.workers, len(todo))) if todo else 0}
     return out
 
 

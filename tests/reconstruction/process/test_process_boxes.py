@@ -33,3 +33,45 @@ def test_the_smoothers_read_serves_the_box_choice(recorded_flight):
         np.testing.assert_array_equal(got["source"], want["source"])
         np.testing.assert_array_equal(got["box_xywh"], want["box_xywh"])
         assert np.sum(got["source"] == 1) > 10  # recorded detections were chosen, not only the track
+
+
+def test_boxes_in_threads_equal_one_thread_and_hit_the_same_cache(recorded_flight, tmp_path):
+    """``boxes.workers``: the drones' box choice and detector re-runs in threads give the one-thread boxes, and the
+    number of threads is not part of the cache key (a flight boxed with 1 thread is a cache hit with 2)."""
+    from flightdata.folder import FlightFolder
+    from reconstruction.process import pipeline
+    from reconstruction.process.cache import file_identity
+    from reconstruction.process.config import ProcessConfig
+
+    flight = FlightFolder(recorded_flight)
+
+    def run(workers, cache_dir):
+        logs = flight.drone_logs()
+        drones = list(logs)
+        ident = {d: [file_identity(s.path) for s in logs[d]] for d in drones}
+        cfg = ProcessConfig()
+        cfg.boxes.workers = workers
+        steps: dict = {}
+
+        def step_dir(step):
+            p = cache_dir / step
+            p.mkdir(parents=True, exist_ok=True)
+            return p
+
+        out = pipeline._boxes_step(flight, logs, drones, {}, ident, cfg.validate(), step_dir, None, None, steps)
+        return out, steps["boxes"]
+
+    one, s1 = run(1, tmp_path / "a")
+    two, s2 = run(2, tmp_path / "b")
+    assert not s1["cached"] and not s2["cached"] and s2["workers"] == 2
+    assert list(one) == list(two) == list(flight.drone_logs())
+    for d in one:
+        for k in ("t_ns", "box_xywh", "source"):
+            np.testing.assert_array_equal(one[d][k], two[d][k])
+        assert str(one[d]["key"]) == str(two[d]["key"])
+    again, s3 = run(2, tmp_path / "a")
+    assert s3["cached"] and s3["workers"] == 0
+    with pytest.raises(Exception, match="boxes.workers"):
+        cfg = ProcessConfig()
+        cfg.boxes.workers = 0
+        cfg.validate()
