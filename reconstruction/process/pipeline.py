@@ -290,12 +290,32 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
 
 
 # ------------------------------------------------------------------------------------------------ steps
+def _thread_map(fn, items, workers: int, name: str) -> list:
+    """[fn(item) for item in items] in up to ``workers`` threads (here with 1): every call ends (a cancel stops them
+    all) before the first error is raised."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    items = list(items)
+    workers = max(1, min(workers, len(items)))
+    if workers == 1:
+        return [fn(i) for i in items]
+    with ThreadPoolExecutor(workers, thread_name_prefix=name) as pool:
+        futures = [pool.submit(fn, i) for i in items]
+        out, first_error = [], None
+        for f in futures:
+            try:
+                out.append(f.result())
+            except BaseException as e:
+                first_error = first_error or e
+        if first_error is not None:
+            raise first_error
+        return out
+
+
 def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, cancel, steps) -> dict[str, dict]:
     """Each drone's boxes (cached per drone): the offline smoother once over all drones, then each drone's box choice
     and detector re-runs in ``cfg.boxes.workers`` threads (each with its own detector; onnxruntime and the image
     decoding release the GIL)."""
-    from concurrent.futures import ThreadPoolExecutor
-
     t0 = time.perf_counter()
     sp = StepProgress("boxes", progress, cancel)
     sp.check_cancel()
@@ -351,21 +371,7 @@ def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, c
             tick(d, 1, 1, f"{d}: boxes")
             return z
 
-        workers = max(1, min(cfg.boxes.workers, len(todo)))
-        if workers == 1:
-            results = [one(d) for d in todo]
-        else:
-            with ThreadPoolExecutor(workers, thread_name_prefix="boxes") as pool:
-                futures = [pool.submit(one, d) for d in todo]
-                results, first_error = [], None
-                for f in futures:  # every thread ends (a cancel stops them all) before an error is raised
-                    try:
-                        results.append(f.result())
-                    except BaseException as e:
-                        first_error = first_error or e
-                        results.append(None)
-                if first_error is not None:
-                    raise first_error
+        results = _thread_map(one, todo, cfg.boxes.workers, "boxes")
         for d, z in zip(todo, results):
             if isinstance(z, BaseException):
                 _skip(d, z, drones, skipped, "boxes")
@@ -381,8 +387,6 @@ def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, c
 def _keypoints_step(logs, drones, skipped, boxes, cfg, step_dir, progress, cancel, steps, stats):
     """The keypoint models on each drone's boxed frames, in ``cfg.keypoints.workers`` threads (the onnxruntime runs
     and the image decoding release the GIL; each thread opens its own models) over parts of the drones' chunks."""
-    from concurrent.futures import ThreadPoolExecutor
-
     t0 = time.perf_counter()
     sp = StepProgress("keypoints", progress, cancel)
     sp.check_cancel()
@@ -449,19 +453,7 @@ def _keypoints_step(logs, drones, skipped, boxes, cfg, step_dir, progress, cance
         return d, None
 
     errors: dict[str, BaseException] = {}
-    if workers == 1:
-        outs = [run(t) for t in range(len(tasks))]
-    else:
-        with ThreadPoolExecutor(workers, thread_name_prefix="keypoints") as pool:
-            futures = [pool.submit(run, t) for t in range(len(tasks))]
-            outs, first_error = [], None
-            for f in futures:  # every thread ends (a cancel stops them all) before an error is raised
-                try:
-                    outs.append(f.result())
-                except BaseException as e:
-                    first_error = first_error or e
-            if first_error is not None:
-                raise first_error
+    outs = _thread_map(run, range(len(tasks)), workers, "keypoints")
     for d, e in outs:
         if e is not None:
             errors.setdefault(d, e)
