@@ -55,6 +55,8 @@ class PendingMotion:
 
     def __init__(self) -> None:
         self._done = threading.Event()
+        #: seconds the exporters spent blocked in :meth:`ExportContext.wait_motion` (all of them together)
+        self.waited_s = 0.0
         self._values: dict[str, Any] | None = None
         self._error: BaseException | None = None
 
@@ -106,7 +108,11 @@ class ExportContext:
         """``(t_ns, joints_ned)``; in an early exporter, blocks until the fit ends (then ``params`` and ``shape`` are
         set too) and raises :class:`MotionUnavailable` if it failed or was cancelled."""
         if self.motion is not None and self.t_ns is None:
-            v = self.motion.wait()
+            t0 = time.perf_counter()
+            try:
+                v = self.motion.wait()
+            finally:
+                self.motion.waited_s += time.perf_counter() - t0
             self.t_ns, self.joints_ned, self.params, self.shape = v["t_ns"], v["joints_ned"], v["params"], v["shape"]
         return self.t_ns, self.joints_ned
 
@@ -234,7 +240,7 @@ class EarlyExports:
 
     def __init__(self, ctx: ExportContext, names: list[str], workers: int = 2) -> None:
         self.names = [n for n in names if n in EARLY_EXPORTERS and n in EXPORTERS]
-        self.motion = PendingMotion()
+        self._pending: dict[str, PendingMotion] = {}
         self.t_start = time.perf_counter()
         self.t_motion: float | None = None
         #: after :meth:`results`: per exporter {"seconds", "before_motion_s"}
@@ -248,21 +254,26 @@ class EarlyExports:
         import concurrent.futures as cf
 
         self._executor = cf.ThreadPoolExecutor(max(1, min(workers, len(self.names))), thread_name_prefix="export-early")
+        self._pending: dict[str, PendingMotion] = {}
         for n in self.names:
-            # each exporter its own context: wait_motion() fills it in its own thread
-            early = dataclasses.replace(ctx, t_ns=None, joints_ned=None, params=None, shape=None, motion=self.motion)
+            # each exporter its own context (wait_motion() fills it in its thread) and its own pending motion
+            self._pending[n] = PendingMotion()
+            early = dataclasses.replace(ctx, t_ns=None, joints_ned=None, params=None, shape=None,
+                                        motion=self._pending[n])
             self._futures[n] = self._executor.submit(_timed, EXPORTERS[n], early)
         log.info("export: started %s before the fit", ", ".join(self.names))
 
     def motion_ready(self, t_ns: np.ndarray, joints_ned: np.ndarray, params: dict | None = None,
                      shape: np.ndarray | None = None) -> None:
         self.t_motion = time.perf_counter()
-        self.motion.set(t_ns=t_ns, joints_ned=joints_ned, params=params, shape=shape)
+        for m in self._pending.values():
+            m.set(t_ns=t_ns, joints_ned=joints_ned, params=params, shape=shape)
 
     def abort(self, error: BaseException) -> None:
         """Stop the early exporters (they raise :class:`MotionUnavailable` at their next wait or check) and wait
         for their threads; their errors are dropped (``error`` is what the caller raises). Idempotent."""
-        self.motion.fail(error)
+        for m in self._pending.values():
+            m.fail(error)
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
             self._executor = None
@@ -277,8 +288,9 @@ class EarlyExports:
 
     def results(self) -> tuple[dict[str, Path], dict[str, float], dict[str, dict]]:
         """After :meth:`motion_ready`: wait for them -> ({name: path}, {exporter: seconds}, {exporter: {"seconds",
-        "before_motion_s"}}) (``before_motion_s``: how much of its time ran before the fit ended, i.e. overlapped
-        it). An exporter's error is raised here."""
+        "before_motion_s", "waited_s", "overlap_s"}}): ``before_motion_s`` of its ``seconds`` passed before the fit
+        ended, ``waited_s`` of those blocked on the motion, ``overlap_s`` (the difference) were its work done while
+        the fit ran. An exporter's error is raised here."""
         out: dict[str, Path] = {}
         seconds: dict[str, float] = {}
         timing: dict[str, dict] = {}
@@ -287,8 +299,10 @@ class EarlyExports:
                 res, seconds[n] = f.result()
                 out.update({k: Path(v) for k, v in res.items()})
                 t_motion = self.t_motion if self.t_motion is not None else time.perf_counter()
-                timing[n] = {"seconds": round(seconds[n], 3),
-                             "before_motion_s": round(min(seconds[n], t_motion - self.t_start), 3)}
+                before = min(seconds[n], t_motion - self.t_start)
+                waited = min(self._pending[n].waited_s, before)
+                timing[n] = {"seconds": round(seconds[n], 3), "before_motion_s": round(before, 3),
+                             "waited_s": round(waited, 3), "overlap_s": round(before - waited, 3)}
         finally:
             if self._executor is not None:
                 self._executor.shutdown(wait=True, cancel_futures=True)

@@ -124,7 +124,9 @@ def test_an_early_exporter_waits_for_the_motion_and_writes_the_same_file(motion,
         assert "export-early" in paths["late"].read_text()
         assert paths["late"].read_text().splitlines()[1] == paths_seq["late"].read_text().splitlines()[1]
         assert paths["late"].read_text().splitlines()[1].endswith("True")  # params / shape handed over too
-        assert early.timing["late"]["before_motion_s"] >= 0.3 and early.timing["late"]["seconds"] >= 0.3
+        t = early.timing["late"]
+        assert t["seconds"] >= t["before_motion_s"] >= 0.3 and t["waited_s"] >= 0.2  # it waited for the motion
+        assert t["overlap_s"] == pytest.approx(t["before_motion_s"] - t["waited_s"], abs=2e-3)
         assert not [t for t in threading.enumerate() if t.name.startswith("export-early")]
     finally:
         EXPORTERS.pop("late", None)
@@ -142,7 +144,7 @@ def test_a_failed_fit_stops_the_early_exporters_leaving_no_file_and_no_thread(mo
         assert not out.exists()  # the partial file removed, and the folder the early exporter made
         assert not [t for t in threading.enumerate() if t.name.startswith("export-early")]
         with pytest.raises(MotionUnavailable, match="no window could be fitted"):
-            early.motion.wait()
+            early.results()  # the exporter's own error: it stopped at the motion
     finally:
         EXPORTERS.pop("late", None)
         EARLY_EXPORTERS.discard("late")

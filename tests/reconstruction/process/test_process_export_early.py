@@ -55,6 +55,7 @@ def test_early_foxglove_equals_sequential_and_a_cached_export_is_a_hit(recorded_
     assert "early" not in seq.steps["export"]
     timing = early.steps["export"]["early"]["foxglove"]
     assert timing["seconds"] > 0 and 0 <= timing["before_motion_s"] <= timing["seconds"]
+    assert 0 <= timing["overlap_s"] <= timing["before_motion_s"] and timing["waited_s"] >= 0
     assert early.steps["export"]["exporters"]["foxglove"] == timing["seconds"]
     assert json.loads((early.out_dir / "summary.json").read_text())["steps"]["export"]["early"] == {"foxglove": timing}
     a, b = _decode(seq.outputs["foxglove"]), _decode(early.outputs["foxglove"])
