@@ -38,13 +38,18 @@ def write_rrd(
     rec = rr.RecordingStream("skycap_reconstruction")
     rec.save(str(path))
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_DOWN, static=True)
-    limbs = np.array(COCO17_LIMBS)
     n = len(t_ns) if max_frames is None else min(len(t_ns), max_frames)
-    for i in range(n):
-        rec.set_time("time", duration=(int(t_ns[i]) - t0) * 1e-9)
-        J = joints_ned[i]
-        rec.log("world/person/joints", rr.Points3D(J, radii=0.03))
-        rec.log("world/person/limbs", rr.LineStrips3D(np.stack([J[limbs[:, 0]], J[limbs[:, 1]]], 1), radii=0.015))
+    if n:
+        J = np.asarray(joints_ned[:n], dtype=np.float32)
+        limbs = np.array(COCO17_LIMBS)
+        strips = np.stack([J[:, limbs[:, 0]], J[:, limbs[:, 1]]], 2).reshape(-1, 2, 3)  # (n * limbs, 2, 3)
+        time = [_time_column(t_ns[:n], t0)]
+        rec.send_columns("world/person/joints", time,
+                         [*rr.Points3D.columns(positions=J.reshape(-1, 3)).partition(np.full(n, J.shape[1])),
+                          *rr.Points3D.columns(radii=np.full(n, 0.03, np.float32))])
+        rec.send_columns("world/person/limbs", time,
+                         [*rr.LineStrips3D.columns(strips=list(strips)).partition(np.full(n, len(limbs))),
+                          *rr.LineStrips3D.columns(radii=np.full(n, 0.015, np.float32))])
     for cam in cameras or []:
         name = cam["name"]
         tc = np.asarray(cam["t_ns"], dtype=np.int64)
@@ -56,14 +61,24 @@ def write_rrd(
             rr.Pinhole(image_from_camera=K, resolution=[cam["width_px"], cam["height_px"]], image_plane_distance=1.0),
             static=True,
         )
-        for f in range(len(tc)):
-            rec.set_time("time", duration=(int(tc[f]) - t0) * 1e-9)
-            rec.log(f"world/cameras/{name}", rr.Transform3D(translation=T[f, :3, 3], mat3x3=T[f, :3, :3]))
+        if len(tc):
+            rec.send_columns(f"world/cameras/{name}", [_time_column(tc, t0)],
+                             rr.Transform3D.columns(translation=T[:, :3, 3], mat3x3=T[:, :3, :3]))
     if capture is not None:
         for cam in capture.cameras:
-            for f in range(cam.num_frames):
-                rec.set_time("time", duration=(int(cam.t_frame_ns[f]) - t0) * 1e-9)
-                ok = cam.confidence[f, 0] > 0
-                rec.log(f"world/cameras/{cam.name}/keypoints", rr.Points2D(cam.keypoints_px[f, 0][ok], radii=3.0))
+            if not cam.num_frames:
+                continue
+            kp = np.asarray(cam.keypoints_px[:, 0], dtype=np.float32)  # detector 0: (F, 17, 2)
+            ok = np.asarray(cam.confidence[:, 0] > 0)
+            rec.send_columns(f"world/cameras/{cam.name}/keypoints", [_time_column(cam.t_frame_ns, t0)],
+                             [*rr.Points2D.columns(positions=kp[ok]).partition(ok.sum(axis=1)),
+                              *rr.Points2D.columns(radii=np.full(cam.num_frames, 3.0, np.float32))])
     rec.flush()
     return path
+
+
+def _time_column(t_ns: np.ndarray, t0_ns: int):
+    """The ``time`` timeline (a duration from the first frame) at ``t_ns``, exact to the nanosecond."""
+    import rerun as rr
+
+    return rr.TimeColumn("time", duration=(np.asarray(t_ns, dtype=np.int64) - t0_ns).astype("timedelta64[ns]"))

@@ -14,6 +14,13 @@ list that name in ``ExportConfig.extra`` (``--set export.extra='["trc"]'``)::
     register_exporter("trc", write_trc)
 
 An exporter returns the files it wrote ({name: path}); they are listed in ``summary.json`` ``outputs``.
+
+An exporter that needs the motion only at its end (the Foxglove MCAP: the recordings first, the skeleton last)
+registers with ``early=True``: the pipeline starts it in a thread before the fit (:class:`EarlyExports`), with a
+context whose motion is pending; it calls ``ctx.wait_motion()`` (or reads :func:`late_motion`'s ``t_ns`` /
+``joints_ned``) where it needs the motion, which blocks until the fit ends and raises :class:`MotionUnavailable`
+when the fit failed or was cancelled (the exporter then removes what it began writing). ``ctx.check_motion()``
+raises the same at once, for exporters that can stop early between their parts.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import pickle
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
@@ -33,7 +41,45 @@ from reconstruction.process.events import ProcessError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EXPORTERS", "ExportContext", "export_all", "register_exporter"]
+__all__ = ["EARLY_EXPORTERS", "EXPORTERS", "EarlyExports", "ExportContext", "MotionUnavailable", "PendingMotion",
+           "export_all", "late_motion", "register_exporter"]
+
+
+class MotionUnavailable(ProcessError):
+    """An early exporter waited for the motion, but the fit failed or was cancelled."""
+
+
+class PendingMotion:
+    """The fit's result as an early exporter sees it before the fit ends: :meth:`set` (the motion) or :meth:`fail`
+    (the fit's error), once; :meth:`wait` blocks until either."""
+
+    def __init__(self) -> None:
+        self._done = threading.Event()
+        #: seconds the exporters spent blocked in :meth:`ExportContext.wait_motion` (all of them together)
+        self.waited_s = 0.0
+        self._values: dict[str, Any] | None = None
+        self._error: BaseException | None = None
+
+    def set(self, **values: Any) -> None:
+        self._values = values
+        self._done.set()
+
+    def fail(self, error: BaseException) -> None:
+        if not self._done.is_set():
+            self._error = error
+            self._done.set()
+
+    def check(self) -> None:
+        """Raise :class:`MotionUnavailable` if the fit already failed (no wait)."""
+        if self._error is not None:
+            raise MotionUnavailable(f"the fit ended without a motion ({type(self._error).__name__}: {self._error}); "
+                                    "the early exporter stopped") from self._error
+
+    def wait(self) -> dict[str, Any]:
+        self._done.wait()
+        self.check()
+        assert self._values is not None
+        return self._values
 
 
 @dataclasses.dataclass
@@ -55,17 +101,66 @@ class ExportContext:
     boxes: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
     params: dict | None = None
     shape: np.ndarray | None = None
+    #: set for an early exporter's context (``t_ns`` ... ``shape`` are None until the fit ends): see :meth:`wait_motion`
+    motion: PendingMotion | None = None
+
+    def wait_motion(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(t_ns, joints_ned)``; in an early exporter, blocks until the fit ends (then ``params`` and ``shape`` are
+        set too) and raises :class:`MotionUnavailable` if it failed or was cancelled."""
+        if self.motion is not None and self.t_ns is None:
+            t0 = time.perf_counter()
+            try:
+                v = self.motion.wait()
+            finally:
+                self.motion.waited_s += time.perf_counter() - t0
+            self.t_ns, self.joints_ned, self.params, self.shape = v["t_ns"], v["joints_ned"], v["params"], v["shape"]
+        return self.t_ns, self.joints_ned
+
+    def check_motion(self) -> None:
+        """In an early exporter: raise :class:`MotionUnavailable` now if the fit failed or was cancelled."""
+        if self.motion is not None:
+            self.motion.check()
+
+
+class _LateMotion:
+    """``t_ns`` / ``joints_ned`` read from an export context when first asked (see :func:`late_motion`)."""
+
+    def __init__(self, ctx: ExportContext) -> None:
+        self._ctx = ctx
+
+    @property
+    def t_ns(self) -> np.ndarray:
+        return self._ctx.wait_motion()[0]
+
+    @property
+    def joints_ned(self) -> np.ndarray:
+        return self._ctx.wait_motion()[1]
+
+
+def late_motion(ctx: ExportContext) -> Any:
+    """An object with ``t_ns`` and ``joints_ned`` attributes that wait for the fit (:meth:`ExportContext.wait_motion`)
+    when read: what an early exporter hands a writer that takes a result (e.g.
+    :func:`flightdata.foxglove.export_foxglove`, which reads them only for its last channel)."""
+    return _LateMotion(ctx)
 
 
 Exporter = Callable[[ExportContext], dict[str, Path]]
 
 #: name -> exporter; ``ExportConfig.extra`` names which run after the standard files
 EXPORTERS: dict[str, Exporter] = {}
+#: the registered exporters that may start before the fit (they wait for the motion themselves)
+EARLY_EXPORTERS: set[str] = set()
 
 
-def register_exporter(name: str, fn: Exporter) -> None:
-    """Make ``fn`` available as ``export.extra`` entry ``name`` (a later registration replaces an earlier one)."""
+def register_exporter(name: str, fn: Exporter, early: bool = False) -> None:
+    """Make ``fn`` available as ``export.extra`` entry ``name`` (a later registration replaces an earlier one).
+    ``early``: ``fn`` reads the motion only through ``ctx.wait_motion()`` / :func:`late_motion`, so the pipeline may
+    start it before the fit (threads only; see :class:`EarlyExports`)."""
     EXPORTERS[name] = fn
+    if early:
+        EARLY_EXPORTERS.add(name)
+    else:
+        EARLY_EXPORTERS.discard(name)
 
 
 def export_foxglove_mcap(ctx: ExportContext) -> dict[str, Path]:
@@ -75,11 +170,12 @@ def export_foxglove_mcap(ctx: ExportContext) -> dict[str, Path]:
     from flightdata.folder import FOXGLOVE_FILE
     from flightdata.foxglove import export_foxglove
 
-    res = export_foxglove(ctx.flight, ctx, ctx.out_dir / FOXGLOVE_FILE, sortie=ctx.config.sortie_or_none, overwrite=True)
+    res = export_foxglove(ctx.flight, late_motion(ctx), ctx.out_dir / FOXGLOVE_FILE, sortie=ctx.config.sortie_or_none,
+                          overwrite=True, progress=lambda *_: ctx.check_motion())  # stops between drones on a failed fit
     return {"foxglove": Path(res.path)}
 
 
-register_exporter("foxglove", export_foxglove_mcap)
+register_exporter("foxglove", export_foxglove_mcap, early=True)
 
 
 def _cameras(ctx: ExportContext) -> list[dict]:
@@ -135,8 +231,89 @@ def config_snapshot(cfg: Any) -> Any:
     return ns
 
 
+class EarlyExports:
+    """The ``early`` exporters (:data:`EARLY_EXPORTERS`) named in ``names``, started in threads now, before the fit,
+    on ``ctx`` (the flight, output folder, capture, method, config, boxes; no motion yet). Then exactly one of:
+    :meth:`motion_ready` (the fit's motion; :func:`export_all` collects their files) or :meth:`abort` (the fit
+    failed or was cancelled: they stop, remove what they began, and their threads have ended when it returns).
+    ``names`` empty (nothing early listed): no thread; :attr:`names` is empty."""
+
+    def __init__(self, ctx: ExportContext, names: list[str], workers: int = 2) -> None:
+        self.names = [n for n in names if n in EARLY_EXPORTERS and n in EXPORTERS]
+        self._pending: dict[str, PendingMotion] = {}
+        self.t_start = time.perf_counter()
+        self.t_motion: float | None = None
+        #: after :meth:`results`: per exporter {"seconds", "before_motion_s"}
+        self.timing: dict[str, dict] = {}
+        self._executor = None
+        self._futures: dict[str, Any] = {}
+        self._out_dir_existed = Path(ctx.out_dir).exists()
+        self._out_dir = Path(ctx.out_dir)
+        if not self.names:
+            return
+        import concurrent.futures as cf
+
+        self._executor = cf.ThreadPoolExecutor(max(1, min(workers, len(self.names))), thread_name_prefix="export-early")
+        self._pending: dict[str, PendingMotion] = {}
+        for n in self.names:
+            # each exporter its own context (wait_motion() fills it in its thread) and its own pending motion
+            self._pending[n] = PendingMotion()
+            early = dataclasses.replace(ctx, t_ns=None, joints_ned=None, params=None, shape=None,
+                                        motion=self._pending[n])
+            self._futures[n] = self._executor.submit(_timed, EXPORTERS[n], early)
+        log.info("export: started %s before the fit", ", ".join(self.names))
+
+    def motion_ready(self, t_ns: np.ndarray, joints_ned: np.ndarray, params: dict | None = None,
+                     shape: np.ndarray | None = None) -> None:
+        self.t_motion = time.perf_counter()
+        for m in self._pending.values():
+            m.set(t_ns=t_ns, joints_ned=joints_ned, params=params, shape=shape)
+
+    def abort(self, error: BaseException) -> None:
+        """Stop the early exporters (they raise :class:`MotionUnavailable` at their next wait or check) and wait
+        for their threads; their errors are dropped (``error`` is what the caller raises). Idempotent."""
+        for m in self._pending.values():
+            m.fail(error)
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+            for n, f in self._futures.items():
+                if not f.cancelled() and f.exception() is not None and not isinstance(f.exception(), MotionUnavailable):
+                    log.warning("export: early exporter %r failed while stopping: %s", n, f.exception())
+            if not self._out_dir_existed:
+                try:
+                    self._out_dir.rmdir()  # made for the early files only, and empty: the failed run leaves nothing
+                except OSError:
+                    pass
+
+    def results(self) -> tuple[dict[str, Path], dict[str, float], dict[str, dict]]:
+        """After :meth:`motion_ready`: wait for them -> ({name: path}, {exporter: seconds}, {exporter: {"seconds",
+        "before_motion_s", "waited_s", "overlap_s"}}): ``before_motion_s`` of its ``seconds`` passed before the fit
+        ended, ``waited_s`` of those blocked on the motion, ``overlap_s`` (the difference) were its work done while
+        the fit ran. An exporter's error is raised here."""
+        out: dict[str, Path] = {}
+        seconds: dict[str, float] = {}
+        timing: dict[str, dict] = {}
+        try:
+            for n, f in self._futures.items():
+                res, seconds[n] = f.result()
+                out.update({k: Path(v) for k, v in res.items()})
+                t_motion = self.t_motion if self.t_motion is not None else time.perf_counter()
+                before = min(seconds[n], t_motion - self.t_start)
+                waited = min(self._pending[n].waited_s, before)
+                timing[n] = {"seconds": round(seconds[n], 3), "before_motion_s": round(before, 3),
+                             "waited_s": round(waited, 3), "overlap_s": round(before - waited, 3)}
+        finally:
+            if self._executor is not None:
+                self._executor.shutdown(wait=True, cancel_futures=True)
+                self._executor = None
+        self.timing = timing
+        return out, seconds, timing
+
+
 def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2,
-               check_cancel: Callable[[], None] | None = None, pool: str = "threads") -> tuple[dict[str, Path], dict[str, float]]:
+               check_cancel: Callable[[], None] | None = None, pool: str = "threads",
+               early: EarlyExports | None = None) -> tuple[dict[str, Path], dict[str, float]]:
     """Every output of the export step -> ({name: path}, {exporter: seconds}).
 
     The exporters are independent: the rerun recording (``rrd``) and the ``extra`` exporters (the Foxglove MCAP)
@@ -145,13 +322,19 @@ def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2
     ``motion.{bvh,trc,npz,csv}``. ``workers=0`` runs them all in the calling thread, one after the other (the same
     files). With processes, an exporter that cannot be pickled (a lambda, a closure) runs here, and in a worker
     ``ctx.config`` is a :func:`config_snapshot` (the same attributes). ``check_cancel`` is called
-    between exporters (it raises to cancel)."""
+    between exporters (it raises to cancel).
+
+    ``early``: the :class:`EarlyExports` started before the fit for some of ``extra``; they are handed the motion
+    (``ctx``'s) and their files collected here instead of running them again. Any error or cancel here stops them
+    (:meth:`EarlyExports.abort`)."""
     names = list(extra)
     for n in names:
         if n not in EXPORTERS:
             raise ProcessError(f"export.extra names {n!r}, which no exporter registered; registered: "
                                f"{', '.join(sorted(EXPORTERS)) or 'none'} (reconstruction.process.export.register_exporter)")
-    jobs: list[tuple[str, Exporter]] = ([("rrd", _rrd)] if rrd else []) + [(n, EXPORTERS[n]) for n in names]
+    started = set(early.names) if early is not None else set()
+    jobs: list[tuple[str, Exporter]] = ([("rrd", _rrd)] if rrd else []) + [(n, EXPORTERS[n]) for n in names
+                                                                          if n not in started]
     if pool not in ("threads", "processes"):
         raise ProcessError(f"export.pool is {pool!r}; use 'threads' or 'processes'")
     remote = [(n, fn) for n, fn in jobs if workers > 0 and (pool == "threads" or _picklable(fn))]
@@ -160,6 +343,8 @@ def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2
     seconds: dict[str, float] = {}
     executor = None
     futures = {}
+    if early is not None:
+        early.motion_ready(ctx.t_ns, ctx.joints_ned, ctx.params, ctx.shape)
     try:
         if remote:
             import concurrent.futures as cf
@@ -187,10 +372,18 @@ def export_all(ctx: ExportContext, rrd: bool, extra: list[str], workers: int = 2
                     check_cancel()
                 res, seconds[n] = _timed(dict(remote)[n], ctx)
             out.update({k: Path(v) for k, v in res.items()})
+        if early is not None:
+            res, early_s, _ = early.results()
+            out.update(res)
+            seconds.update(early_s)
+    except BaseException as e:
+        if early is not None:
+            early.abort(e)
+        raise
     finally:
         if executor is not None:
             executor.shutdown(wait=True, cancel_futures=True)
     # the standard files first, then the extra ones in their order (as summary.json lists them)
-    order = ["bvh", "trc", "npz", "csv", "rrd"]
+    order = ["bvh", "trc", "npz", "csv", "rrd"] + names
     out = {k: out[k] for k in order if k in out} | {k: v for k, v in out.items() if k not in order}
     return out, {k: round(v, 3) for k, v in seconds.items()}

@@ -47,7 +47,7 @@ from reconstruction.process.boxes import SOURCE_NAMES, compute_boxes, smoother_b
 from reconstruction.process.cache import atomic_write_json, atomic_write_npz, file_identity, make_key, read_npz, remove_tree
 from reconstruction.process.config import ProcessConfig
 from reconstruction.process.events import Cancelled, ProcessError, ProgressSink, StepProgress
-from reconstruction.process.export import ExportContext, export_all
+from reconstruction.process.export import EarlyExports, ExportContext, export_all
 from reconstruction.process.frames import frame_table, has_images
 from reconstruction.process.keypoints import compute_keypoints, fuse_keypoints, load_models
 from reconstruction.process.windows import plan_windows, stitch
@@ -135,6 +135,7 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
         p.mkdir(parents=True, exist_ok=True)
         return p
 
+    early: EarlyExports | None = None  # exporters started before the fit (the export step)
     try:
         if source == "models":
             with_images = {}
@@ -201,6 +202,16 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
         fit_key = make_key("fit", CACHE_VERSION, READER_VERSION, method, inputs, source, cfg.keypoints.fuse, cfg.keypoints.agree_fraction,
                            cfg.keypoints.min_confidence, cfg.multiview if method == "multiview" else cfg.monocular,
                            wcfg, sortie)
+        # the export's key is known now: exporters that need the motion only at their end start before the fit
+        out = Path(cfg.out_dir) if cfg.out_dir else flight.reconstruction_dir(method)
+        exp_key = make_key("export", CACHE_VERSION, fit_key, dataclasses.replace(cfg.export, workers=0, pool=""),
+                           str(out.resolve()))  # how the exporters run does not change the files
+        marker = step_dir("export") / f"{exp_key}.json"
+        prev = _read_marker(marker)
+        if prev is None and cfg.export.workers > 0 and cfg.export.pool == "threads":
+            early = EarlyExports(ExportContext(flight=flight, out_dir=out, t_ns=None, joints_ned=None, capture=capture,
+                                               method=method, config=cfg, keypoints_source=keypoints_source,
+                                               boxes=boxes), cfg.export.extra, cfg.export.workers)
         results, cached_w, shapes, params = [], 0, [], None
         for k, (a, b) in enumerate(windows):
             path = step_dir("fit") / f"{fit_key}-w{k:03d}.npz"
@@ -239,20 +250,15 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
         t0 = time.perf_counter()
         sp = StepProgress("export", progress, cancel)
         sp(0, 1, "writing the outputs")
-        out = Path(cfg.out_dir) if cfg.out_dir else flight.reconstruction_dir(method)
         ctx = ExportContext(flight=flight, out_dir=out, t_ns=t_ns, joints_ned=joints, capture=capture, method=method,
                             config=cfg, keypoints_source=keypoints_source, boxes=boxes, params=params, shape=shape)
-        exp_key = make_key("export", CACHE_VERSION, fit_key, dataclasses.replace(cfg.export, workers=0, pool=""),
-                           str(out.resolve()))  # how the exporters run does not change the files
-        marker = step_dir("export") / f"{exp_key}.json"
-        prev = _read_marker(marker)
         exporter_s: dict[str, float] = {}
         if prev is not None:
             paths = prev
         else:
             out.mkdir(parents=True, exist_ok=True)
             paths, exporter_s = export_all(ctx, cfg.export.rrd, cfg.export.extra, cfg.export.workers, sp.check_cancel,
-                                           cfg.export.pool)
+                                           cfg.export.pool, early=early)
             capture.save(out / "capture.npz")
             from skycap.config import save_config
 
@@ -260,6 +266,8 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
             atomic_write_json(marker, {k: str(v) for k, v in paths.items()})
         steps["export"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": prev is not None,
                            "exporters": exporter_s}
+        if early is not None and early.names:  # started before the fit: their seconds, and how many overlapped it
+            steps["export"]["early"] = early.timing
         seconds = time.perf_counter() - t_begin
         span_s = float((t_ns[-1] - t_ns[0]) * 1e-9) if len(t_ns) > 1 else 0.0
         flight_s = _flight_seconds(capture)
@@ -284,6 +292,10 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
         return ProcessResult(method=method, t_ns=t_ns, joints_ned=joints, summary=summary, out_dir=out,
                              outputs=dict(paths), keypoints_source=keypoints_source, seconds=seconds, steps=steps,
                              drones=list(drones), skipped=skipped, stats=stats)
+    except BaseException as e:
+        if early is not None:  # the fit failed or was cancelled: they stop, leave no file, and their threads end
+            early.abort(e)
+        raise
     finally:
         if tmp is not None:
             tmp.cleanup()

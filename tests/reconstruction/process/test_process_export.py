@@ -3,7 +3,9 @@ after the other."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,8 @@ import pytest
 
 from reconstruction.process.config import ProcessConfig
 from reconstruction.process.events import ProcessError
-from reconstruction.process.export import EXPORTERS, ExportContext, config_snapshot, export_all, register_exporter
+from reconstruction.process.export import (EARLY_EXPORTERS, EXPORTERS, EarlyExports, ExportContext, MotionUnavailable,
+                                          config_snapshot, export_all, register_exporter)
 from reconstruction.synth import procedural_walker, synthesize_capture
 
 
@@ -84,3 +87,76 @@ def test_unknown_exporter_and_pool_are_refused(motion, tmp_path):
         export_all(_ctx(motion, tmp_path), False, ["nope"], 0)
     with pytest.raises(ProcessError, match="export.pool"):
         export_all(_ctx(motion, tmp_path), False, [], 2, pool="fibres")
+
+
+def write_late(ctx: ExportContext) -> dict[str, Path]:
+    """An early exporter: writes its first part before the motion is known, the motion's part at its end (removing
+    its partial file when the fit fails, as the Foxglove exporter does)."""
+    part = ctx.out_dir / ".late.txt.partial"
+    ctx.out_dir.mkdir(parents=True, exist_ok=True)
+    part.write_text(f"{threading.current_thread().name}\n")
+    try:
+        t_ns, J = ctx.wait_motion()
+        with part.open("a") as f:
+            f.write(f"{len(t_ns)} {float(J[3, 5, 1]):.6f} {ctx.shape is not None}\n")
+    except BaseException:
+        part.unlink()
+        raise
+    return {"late": part.replace(ctx.out_dir / "late.txt")}
+
+
+def _early_ctx(motion, out: Path) -> ExportContext:
+    return dataclasses.replace(_ctx(motion, out), t_ns=None, joints_ned=None, shape=None)
+
+
+def test_an_early_exporter_waits_for_the_motion_and_writes_the_same_file(motion, tmp_path):
+    register_exporter("late", write_late, early=True)
+    try:
+        seq = tmp_path / "seq"
+        seq.mkdir()
+        paths_seq, _ = export_all(_ctx(motion, seq), False, ["late"], 0)
+        early = EarlyExports(_early_ctx(motion, tmp_path / "early"), ["late"], 2)
+        assert early.names == ["late"]
+        time.sleep(0.3)  # it runs now, and waits: its first part is written, the file is not
+        assert (tmp_path / "early" / ".late.txt.partial").is_file() and not (tmp_path / "early" / "late.txt").exists()
+        paths, seconds = export_all(_ctx(motion, tmp_path / "early"), False, ["late"], 2, early=early)
+        assert set(seconds) == {"motion", "late"} and list(paths)[-1] == "late"
+        assert "export-early" in paths["late"].read_text()
+        assert paths["late"].read_text().splitlines()[1] == paths_seq["late"].read_text().splitlines()[1]
+        assert paths["late"].read_text().splitlines()[1].endswith("True")  # params / shape handed over too
+        t = early.timing["late"]
+        assert t["seconds"] >= t["before_motion_s"] >= 0.3 and t["waited_s"] >= 0.2  # it waited for the motion
+        assert t["overlap_s"] == pytest.approx(t["before_motion_s"] - t["waited_s"], abs=2e-3)
+        assert not [t for t in threading.enumerate() if t.name.startswith("export-early")]
+    finally:
+        EXPORTERS.pop("late", None)
+        EARLY_EXPORTERS.discard("late")
+
+
+def test_a_failed_fit_stops_the_early_exporters_leaving_no_file_and_no_thread(motion, tmp_path):
+    register_exporter("late", write_late, early=True)
+    try:
+        out = tmp_path / "out"
+        early = EarlyExports(_early_ctx(motion, out), ["late"], 2)
+        time.sleep(0.3)
+        assert (out / ".late.txt.partial").is_file()
+        early.abort(ProcessError("no window could be fitted"))
+        assert not out.exists()  # the partial file removed, and the folder the early exporter made
+        assert not [t for t in threading.enumerate() if t.name.startswith("export-early")]
+        with pytest.raises(MotionUnavailable, match="no window could be fitted"):
+            early.results()  # the exporter's own error: it stopped at the motion
+    finally:
+        EXPORTERS.pop("late", None)
+        EARLY_EXPORTERS.discard("late")
+
+
+def test_only_exporters_registered_early_start_early(motion, tmp_path):
+    register_exporter("marker", write_marker)
+    try:
+        early = EarlyExports(_early_ctx(motion, tmp_path), ["marker"], 2)
+        assert early.names == [] and not [t for t in threading.enumerate() if t.name.startswith("export-early")]
+        paths, seconds = export_all(_ctx(motion, tmp_path), False, ["marker"], 2, early=early)
+        assert set(seconds) == {"motion", "marker"}
+    finally:
+        EXPORTERS.pop("marker", None)
+    assert "foxglove" in EARLY_EXPORTERS  # the Foxglove MCAP needs the motion only for its last channel
