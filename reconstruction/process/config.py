@@ -92,6 +92,11 @@ class ExportConfig:
     #: beside Python) or "processes" (spawned: every exporter's Python in parallel, but each worker first imports
     #: numpy / scipy / rerun / foxglove, seconds on a loaded machine)
     pool: str = "threads"
+    #: with ``pool="threads"``: exporters that need the motion only at their end (the Foxglove MCAP) start before the
+    #: fit and write everything else while it runs (the same files; not in the export step's cache key)
+    early: bool = True
+    #: where they run: "processes" (each spawned: its Python does not compete with the fit's for the GIL) or "threads"
+    early_pool: str = "processes"
 
 
 @dataclasses.dataclass
@@ -120,6 +125,8 @@ class ProcessConfig:
         bad = [m for m in k.models if m not in KEYPOINT_MODELS]
         if k.source == "models" and (not k.models or bad):
             raise ProcessError(f"keypoints.models={k.models}: name at least one of {', '.join(KEYPOINT_MODELS)}")
+        if self.export.early_pool not in ("threads", "processes"):
+            raise ProcessError(f"export.early_pool={self.export.early_pool!r}: use 'processes' or 'threads'")
         if self.boxes.workers < 1 or self.boxes.detector_threads < 1:
             raise ProcessError(f"boxes.workers={self.boxes.workers} and boxes.detector_threads="
                                f"{self.boxes.detector_threads} must be >= 1")

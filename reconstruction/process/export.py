@@ -82,6 +82,78 @@ class PendingMotion:
         return self._values
 
 
+class _PipeMotion:
+    """:class:`PendingMotion` as an early exporter in a spawned process sees it: the parent's :meth:`set` /
+    :meth:`fail` arrive on a pipe (:class:`_MotionSender`)."""
+
+    def __init__(self, conn) -> None:
+        self._conn = conn
+        self.waited_s = 0.0
+        self._values: dict[str, Any] | None = None
+        self._error: BaseException | None = None
+
+    def _take(self, block: bool) -> None:
+        if self._values is None and self._error is None and (block or self._conn.poll()):
+            try:
+                kind, payload = self._conn.recv()
+            except EOFError:  # the parent is gone
+                kind, payload = "fail", "the processing that started this exporter ended"
+            if kind == "ok":
+                self._values = payload
+            else:
+                self._error = ProcessError(payload)
+
+    def check(self) -> None:
+        self._take(block=False)
+        if self._error is not None:
+            raise MotionUnavailable(f"the fit ended without a motion ({self._error}); the early exporter stopped")
+
+    def wait(self) -> dict[str, Any]:
+        self._take(block=True)
+        self.check()
+        assert self._values is not None
+        return self._values
+
+
+class _MotionSender:
+    """The parent's end of a :class:`_PipeMotion`: :meth:`set` / :meth:`fail` once; ``waited_s`` as the child
+    reported it."""
+
+    def __init__(self, conn) -> None:
+        self._conn = conn
+        self._sent = False
+        self.waited_s = 0.0
+
+    def set(self, **values: Any) -> None:
+        self._send(("ok", values))
+
+    def fail(self, error: BaseException) -> None:
+        self._send(("fail", f"{type(error).__name__}: {error}"))
+
+    def _send(self, msg) -> None:
+        if not self._sent:
+            self._sent = True
+            try:
+                self._conn.send(msg)
+            except (BrokenPipeError, OSError):  # the child already ended (it failed: its report says why)
+                pass
+
+
+def _early_child(fn: Callable, ctx: "ExportContext", conn) -> None:
+    """An early exporter in a spawned process: ``fn(ctx)`` with the motion from the pipe; its files, seconds and
+    wait (or its error) go back on the pipe."""
+    ctx.motion = _PipeMotion(conn)
+    try:
+        res, seconds = _timed(fn, ctx)
+        conn.send(("done", {k: str(v) for k, v in res.items()}, seconds, ctx.motion.waited_s))
+    except MotionUnavailable:
+        conn.send(("stopped", None, 0.0, ctx.motion.waited_s))
+    except BaseException as e:  # noqa: BLE001 - reported to the parent, which raises it
+        conn.send(("error", f"{type(e).__name__}: {e}", 0.0, ctx.motion.waited_s))
+    finally:
+        conn.close()
+
+
 @dataclasses.dataclass
 class ExportContext:
     """What an exporter gets: the flight (:class:`flightdata.folder.FlightFolder`), the output folder, the motion
@@ -102,7 +174,7 @@ class ExportContext:
     params: dict | None = None
     shape: np.ndarray | None = None
     #: set for an early exporter's context (``t_ns`` ... ``shape`` are None until the fit ends): see :meth:`wait_motion`
-    motion: PendingMotion | None = None
+    motion: Any = None
 
     def wait_motion(self) -> tuple[np.ndarray, np.ndarray]:
         """``(t_ns, joints_ned)``; in an early exporter, blocks until the fit ends (then ``params`` and ``shape`` are
@@ -232,36 +304,59 @@ def config_snapshot(cfg: Any) -> Any:
 
 
 class EarlyExports:
-    """The ``early`` exporters (:data:`EARLY_EXPORTERS`) named in ``names``, started in threads now, before the fit,
-    on ``ctx`` (the flight, output folder, capture, method, config, boxes; no motion yet). Then exactly one of:
+    """The ``early`` exporters (:data:`EARLY_EXPORTERS`) named in ``names``, started now, before the fit, on ``ctx``
+    (the flight, output folder, capture, method, config, boxes; no motion yet): in threads (``pool="threads"``) or
+    each in its own spawned process (``pool="processes"``: its Python does not compete with the fit's for the GIL;
+    ``ctx.config`` is then a :func:`config_snapshot` and the motion arrives on a pipe). Then exactly one of:
     :meth:`motion_ready` (the fit's motion; :func:`export_all` collects their files) or :meth:`abort` (the fit
-    failed or was cancelled: they stop, remove what they began, and their threads have ended when it returns).
-    ``names`` empty (nothing early listed): no thread; :attr:`names` is empty."""
+    failed or was cancelled: they stop, remove what they began, and their threads / processes have ended when it
+    returns). ``names`` empty (nothing early listed): nothing starts; :attr:`names` is empty."""
 
-    def __init__(self, ctx: ExportContext, names: list[str], workers: int = 2) -> None:
+    def __init__(self, ctx: ExportContext, names: list[str], workers: int = 2, pool: str = "threads") -> None:
+        if pool not in ("threads", "processes"):
+            raise ProcessError(f"export.early_pool is {pool!r}; use 'threads' or 'processes'")
         self.names = [n for n in names if n in EARLY_EXPORTERS and n in EXPORTERS]
-        self._pending: dict[str, PendingMotion] = {}
+        if pool == "processes":
+            self.names = [n for n in self.names if _picklable(EXPORTERS[n])]  # the others run after the fit
+        self.pool = pool
+        self._pending: dict[str, Any] = {}  # name -> PendingMotion (threads) or _MotionSender (processes)
         self.t_start = time.perf_counter()
         self.t_motion: float | None = None
-        #: after :meth:`results`: per exporter {"seconds", "before_motion_s"}
+        #: after :meth:`results`: per exporter {"seconds", "before_motion_s", "waited_s", "overlap_s"}
         self.timing: dict[str, dict] = {}
         self._executor = None
         self._futures: dict[str, Any] = {}
+        self._procs: dict[str, tuple[Any, Any]] = {}  # name -> (process, parent's pipe end)
         self._out_dir_existed = Path(ctx.out_dir).exists()
         self._out_dir = Path(ctx.out_dir)
         if not self.names:
             return
-        import concurrent.futures as cf
+        if pool == "threads":
+            import concurrent.futures as cf
 
-        self._executor = cf.ThreadPoolExecutor(max(1, min(workers, len(self.names))), thread_name_prefix="export-early")
-        self._pending: dict[str, PendingMotion] = {}
-        for n in self.names:
-            # each exporter its own context (wait_motion() fills it in its thread) and its own pending motion
-            self._pending[n] = PendingMotion()
-            early = dataclasses.replace(ctx, t_ns=None, joints_ned=None, params=None, shape=None,
-                                        motion=self._pending[n])
-            self._futures[n] = self._executor.submit(_timed, EXPORTERS[n], early)
-        log.info("export: started %s before the fit", ", ".join(self.names))
+            self._executor = cf.ThreadPoolExecutor(max(1, min(workers, len(self.names))),
+                                                   thread_name_prefix="export-early")
+            for n in self.names:
+                # each exporter its own context (wait_motion() fills it in its thread) and its own pending motion
+                self._pending[n] = PendingMotion()
+                early = dataclasses.replace(ctx, t_ns=None, joints_ned=None, params=None, shape=None,
+                                            motion=self._pending[n])
+                self._futures[n] = self._executor.submit(_timed, EXPORTERS[n], early)
+        else:
+            import multiprocessing
+
+            mp = multiprocessing.get_context("spawn")
+            light = dataclasses.replace(ctx, t_ns=None, joints_ned=None, params=None, shape=None, motion=None,
+                                        config=config_snapshot(ctx.config))
+            for n in self.names:
+                parent, child = mp.Pipe()
+                proc = mp.Process(target=_early_child, args=(EXPORTERS[n], light, child), name=f"export-early-{n}",
+                                  daemon=True)
+                proc.start()
+                child.close()
+                self._procs[n] = (proc, parent)
+                self._pending[n] = _MotionSender(parent)
+        log.info("export: started %s before the fit (%s)", ", ".join(self.names), pool)
 
     def motion_ready(self, t_ns: np.ndarray, joints_ned: np.ndarray, params: dict | None = None,
                      shape: np.ndarray | None = None) -> None:
@@ -269,9 +364,10 @@ class EarlyExports:
         for m in self._pending.values():
             m.set(t_ns=t_ns, joints_ned=joints_ned, params=params, shape=shape)
 
-    def abort(self, error: BaseException) -> None:
+    def abort(self, error: BaseException, grace_s: float = 30.0) -> None:
         """Stop the early exporters (they raise :class:`MotionUnavailable` at their next wait or check) and wait
-        for their threads; their errors are dropped (``error`` is what the caller raises). Idempotent."""
+        for their threads / processes (a process still running after ``grace_s`` is terminated); their errors are
+        dropped (``error`` is what the caller raises). Idempotent."""
         for m in self._pending.values():
             m.fail(error)
         if self._executor is not None:
@@ -280,11 +376,37 @@ class EarlyExports:
             for n, f in self._futures.items():
                 if not f.cancelled() and f.exception() is not None and not isinstance(f.exception(), MotionUnavailable):
                     log.warning("export: early exporter %r failed while stopping: %s", n, f.exception())
-            if not self._out_dir_existed:
-                try:
-                    self._out_dir.rmdir()  # made for the early files only, and empty: the failed run leaves nothing
-                except OSError:
-                    pass
+        for n, (proc, conn) in self._procs.items():
+            proc.join(grace_s)
+            if proc.is_alive():
+                log.warning("export: early exporter %r did not stop within %.0f s; terminated", n, grace_s)
+                proc.terminate()
+                proc.join()
+            conn.close()
+        if self._procs:
+            self._procs = {}
+        elif not self._futures:
+            return
+        if not self._out_dir_existed:
+            try:
+                self._out_dir.rmdir()  # made for the early files only, and empty: the failed run leaves nothing
+            except OSError:
+                pass
+
+    def _process_result(self, n: str) -> tuple[dict[str, str], float]:
+        proc, conn = self._procs[n]
+        try:
+            kind, res, seconds, waited = conn.recv()
+        except EOFError:
+            proc.join()
+            raise ProcessError(f"export: the process writing {n!r} died (exit code {proc.exitcode}); run the "
+                               "processing again (the earlier steps are cached)") from None
+        proc.join()
+        conn.close()
+        self._pending[n].waited_s = waited
+        if kind != "done":
+            raise ProcessError(f"export: the early exporter {n!r} failed: {res}")
+        return res, seconds
 
     def results(self) -> tuple[dict[str, Path], dict[str, float], dict[str, dict]]:
         """After :meth:`motion_ready`: wait for them -> ({name: path}, {exporter: seconds}, {exporter: {"seconds",
@@ -295,8 +417,8 @@ class EarlyExports:
         seconds: dict[str, float] = {}
         timing: dict[str, dict] = {}
         try:
-            for n, f in self._futures.items():
-                res, seconds[n] = f.result()
+            for n in self.names:
+                res, seconds[n] = self._futures[n].result() if n in self._futures else self._process_result(n)
                 out.update({k: Path(v) for k, v in res.items()})
                 t_motion = self.t_motion if self.t_motion is not None else time.perf_counter()
                 before = min(seconds[n], t_motion - self.t_start)

@@ -204,14 +204,16 @@ def process(flight_dir, cfg: ProcessConfig | list[str] | None = None, *, progres
                            wcfg, sortie)
         # the export's key is known now: exporters that need the motion only at their end start before the fit
         out = Path(cfg.out_dir) if cfg.out_dir else flight.reconstruction_dir(method)
-        exp_key = make_key("export", CACHE_VERSION, fit_key, dataclasses.replace(cfg.export, workers=0, pool=""),
-                           str(out.resolve()))  # how the exporters run does not change the files
+        how = {"workers": 0, "pool": ""}  # how the exporters run does not change the files (nor does ``early``)
+        exp_cfg = {k: how.get(k, v) for k, v in dataclasses.asdict(cfg.export).items() if k not in ("early", "early_pool")}
+        exp_key = make_key("export", CACHE_VERSION, fit_key, exp_cfg, str(out.resolve()))
         marker = step_dir("export") / f"{exp_key}.json"
         prev = _read_marker(marker)
-        if prev is None and cfg.export.workers > 0 and cfg.export.pool == "threads":
+        if prev is None and cfg.export.early and cfg.export.workers > 0 and cfg.export.pool == "threads":
             early = EarlyExports(ExportContext(flight=flight, out_dir=out, t_ns=None, joints_ned=None, capture=capture,
                                                method=method, config=cfg, keypoints_source=keypoints_source,
-                                               boxes=boxes), cfg.export.extra, cfg.export.workers)
+                                               boxes=boxes), cfg.export.extra, cfg.export.workers,
+                                 cfg.export.early_pool)
         results, cached_w, shapes, params = [], 0, [], None
         for k, (a, b) in enumerate(windows):
             path = step_dir("fit") / f"{fit_key}-w{k:03d}.npz"

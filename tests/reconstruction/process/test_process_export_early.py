@@ -35,8 +35,12 @@ def _decode(path) -> dict[str, list]:
     return out
 
 
-def _early_threads() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name.startswith("export-early")]
+def _early_threads() -> list:
+    """The early exporters' threads and processes still running."""
+    import multiprocessing
+
+    return ([t for t in threading.enumerate() if t.name.startswith("export-early")]
+            + [p for p in multiprocessing.active_children() if p.name.startswith("export-early")])
 
 
 def _wait_for(path, timeout_s: float = 60.0) -> None:
@@ -69,9 +73,19 @@ def test_early_foxglove_equals_sequential_and_a_cached_export_is_a_hit(recorded_
     again = process(flight, _cfg(tmp_path / "early"))
     assert again.steps["export"]["cached"] is True and "early" not in again.steps["export"]
     assert again.outputs == early.outputs and not _early_threads()
+    # export.early=false: the exporters start after the fit (as with workers=0); not in the export's cache key
+    assert process(flight, _cfg(tmp_path / "early", **{"export.early": False})).steps["export"]["cached"] is True
+    off = process(flight, _cfg(tmp_path / "off", **{"export.early": False}))
+    assert "early" not in off.steps["export"] and not off.steps["export"]["cached"] and not _early_threads()
+    assert _decode(off.outputs["foxglove"]) == b
+    # in threads instead of spawned processes: the same file
+    thr = process(flight, _cfg(tmp_path / "threads", **{"export.early_pool": "threads"}))
+    assert thr.steps["export"]["early"]["foxglove"]["seconds"] > 0 and _decode(thr.outputs["foxglove"]) == b
+    assert not _early_threads()
 
 
-def test_a_failed_fit_leaves_no_partial_file_and_no_thread(recorded_flight, tmp_path, monkeypatch):
+@pytest.mark.parametrize("pool", ["processes", "threads"])
+def test_a_failed_fit_leaves_no_partial_file_and_no_thread(recorded_flight, tmp_path, monkeypatch, pool):
     import reconstruction.process.pipeline as pipeline
     from reconstruction.capture import CaptureError
     from reconstruction.process import ProcessError, process
@@ -85,12 +99,13 @@ def test_a_failed_fit_leaves_no_partial_file_and_no_thread(recorded_flight, tmp_
 
     monkeypatch.setattr(pipeline, "fit_capture", failing_fit)
     with pytest.raises(ProcessError, match="no window could be fitted"):
-        process(flight, _cfg(out))
+        process(flight, _cfg(out, **{"export.early_pool": pool}))
     assert not _early_threads()
     assert not out.exists()  # neither the partial MCAP nor the folder made for it
 
 
-def test_a_cancel_during_the_fit_leaves_no_partial_file_and_no_thread(recorded_flight, tmp_path, monkeypatch):
+@pytest.mark.parametrize("pool", ["processes", "threads"])
+def test_a_cancel_during_the_fit_leaves_no_partial_file_and_no_thread(recorded_flight, tmp_path, monkeypatch, pool):
     import reconstruction.process.pipeline as pipeline
     from reconstruction.process import Cancelled, process
 
@@ -106,6 +121,6 @@ def test_a_cancel_during_the_fit_leaves_no_partial_file_and_no_thread(recorded_f
 
     monkeypatch.setattr(pipeline, "fit_capture", cancelled_fit)
     with pytest.raises(Cancelled, match="fit"):
-        process(flight, _cfg(out), cancel=cancel)
+        process(flight, _cfg(out, **{"export.early_pool": pool}), cancel=cancel)
     assert not _early_threads()
     assert not out.exists()
