@@ -729,7 +729,7 @@ def run_demo(cfg: DemoConfig) -> dict | None:
         fresh = [rs for rs in summaries if rs.is_file()]
         if r.returncode == 0 and fresh:
             recon["summary"] = json.loads(fresh[0].read_text())
-            # what the 2D step used: the model names ("movenet_lightning+blazepose_full") or "sim"
+            # what the 2D step used: the model names ("movenet_lightning+blazepose_lite") or "sim"
             recon["keypoints_source"] = recon["summary"].get("keypoints_source", cfg.reconstruct_keypoints)
             recon["seconds_per_flight_second"] = recon["summary"].get("seconds_per_flight_second")
         log.info("skycap process %s: exit %d in %.0f s (log: %s)", out, r.returncode, recon["seconds"],

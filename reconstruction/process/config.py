@@ -41,11 +41,13 @@ class KeypointsConfig:
     ``cancel`` is checked) and frames per cached chunk (``chunk_frames``: what a resumed run does not redo)."""
 
     source: str = "models"
-    #: MoveNet Lightning + BlazePose Full: measured on a 3-drone demo flight (bench note in reconstruction/process/
-    #: README.md) as accurate as Thunder + BlazePose (MPJPE 94.7 vs 104.5 mm) at 0.6x its keypoint time.
-    #: ``blazepose_lite`` instead of ``blazepose_full``: -20% keypoint CPU, but whole-flight MPJPE -6 to +23 mm
-    #: (mean +9) over four demo flights (README, "Keypoint models"), so not the default
-    models: list[str] = dataclasses.field(default_factory=lambda: ["movenet_lightning", "blazepose_full"])
+    #: MoveNet Lightning + BlazePose Lite: the pair that processes a 3-drone 10 Hz flight at >= 1x real time on a
+    #: 2-core CPU (0.96 s per flight second; with ``blazepose_full`` 1.11). Over six demo flights (ellipsoid and Anny
+    #: persons) Lite's steady-orbit MPJPE was -5.6 to +6.3 mm from Full's (mean +1.0; PA +0.8, W +2.1), its
+    #: whole-flight MPJPE +0.5 to +9.3 mm (mean +4.9: take-off and approach, where the person is small):
+    #: ``--models movenet_lightning,blazepose_full`` where accuracy matters more than time (reconstruction/process/
+    #: README.md, "Where it stands"). Lightning + Full was as accurate as Thunder + Full at 0.6x its keypoint time.
+    models: list[str] = dataclasses.field(default_factory=lambda: ["movenet_lightning", "blazepose_lite"])
     #: onnxruntime intra-op threads per model (and per worker, see ``workers``)
     threads: int = 1
     crop_scale: float = 1.25

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from evaluation.harness import HarnessConfig, flight_errors_from_estimator, resolve, run_harness
+from reconstruction.process.config import KeypointsConfig
 from reconstruction.synth import FlightPoseErrors, SynthConfig, flight_pose_errors, synthesize_capture
 from simulator.config import POSITION_GRADES, EstimatorConfig, estimator_for_grade, grade_overrides
 from simulator.scene.config import CameraConfig
@@ -113,7 +114,7 @@ def test_harness_runs_the_models_on_rendered_frames(cmu_dir, tmp_path):
                         synth=SynthConfig(pose_errors="flight", drones=2))
     cfg.fit.iters = 40
     m = run_harness(cfg, progress=False)
-    assert m["keypoints_source"] == "models:movenet_lightning+blazepose_full" and m["position_grade"] == "rtk"
+    assert m["keypoints_source"] == "models:" + "+".join(KeypointsConfig().models) and m["position_grade"] == "rtk"
     assert m["frames"] == 3 and m["context_frames"] == 2  # one frame of flight before and after the scored clip
     assert m["frames_without_person"] == 0 and m["rendered_frames"] >= 2 * 2
     assert 0 < m["keypoint_err_median_frac_of_height"] < 0.1 and m["person_height_px_median"] > 30
