@@ -16,11 +16,11 @@ list that name in ``ExportConfig.extra`` (``--set export.extra='["trc"]'``)::
 An exporter returns the files it wrote ({name: path}); they are listed in ``summary.json`` ``outputs``.
 
 An exporter that needs the motion only at its end (the Foxglove MCAP: the recordings first, the skeleton last)
-registers with ``early=True``: the pipeline starts it in a thread before the fit (:class:`EarlyExports`), with a
-context whose motion is pending; it calls ``ctx.wait_motion()`` (or reads :func:`late_motion`'s ``t_ns`` /
-``joints_ned``) where it needs the motion, which blocks until the fit ends and raises :class:`MotionUnavailable`
-when the fit failed or was cancelled (the exporter then removes what it began writing). ``ctx.check_motion()``
-raises the same at once, for exporters that can stop early between their parts.
+registers with ``early=True``: the pipeline starts it before the fit (:class:`EarlyExports`: in a spawned process by
+default, ``export.early_pool``), with a context whose motion is pending; it calls ``ctx.wait_motion()`` (or reads
+:func:`late_motion`'s ``t_ns`` / ``joints_ned``) where it needs the motion, which blocks until the fit ends and raises
+:class:`MotionUnavailable` when the fit failed or was cancelled (the exporter then removes what it began writing).
+``ctx.check_motion()`` raises the same at once, for exporters that can stop early between their parts.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ class MotionUnavailable(ProcessError):
 
 class PendingMotion:
     """The fit's result as an early exporter sees it before the fit ends: :meth:`set` (the motion) or :meth:`fail`
-    (the fit's error), once; :meth:`wait` blocks until either."""
+    (the fit's error), once; :meth:`wait` blocks until either, :meth:`check` raises at once after a failure."""
 
     def __init__(self) -> None:
         self._done = threading.Event()
@@ -69,50 +69,44 @@ class PendingMotion:
             self._error = error
             self._done.set()
 
+    def _receive(self, block: bool) -> None:
+        """Where :meth:`set` / :meth:`fail` come from: in this process, the caller's thread (nothing to do but
+        wait)."""
+        if block:
+            self._done.wait()
+
     def check(self) -> None:
         """Raise :class:`MotionUnavailable` if the fit already failed (no wait)."""
+        self._receive(block=False)
         if self._error is not None:
             raise MotionUnavailable(f"the fit ended without a motion ({type(self._error).__name__}: {self._error}); "
                                     "the early exporter stopped") from self._error
 
     def wait(self) -> dict[str, Any]:
-        self._done.wait()
+        self._receive(block=True)
         self.check()
         assert self._values is not None
         return self._values
 
 
-class _PipeMotion:
-    """:class:`PendingMotion` as an early exporter in a spawned process sees it: the parent's :meth:`set` /
-    :meth:`fail` arrive on a pipe (:class:`_MotionSender`)."""
+class _PipeMotion(PendingMotion):
+    """:class:`PendingMotion` in an early exporter's spawned process: the parent's :meth:`set` / :meth:`fail` arrive
+    on a pipe (:class:`_MotionSender`)."""
 
     def __init__(self, conn) -> None:
+        super().__init__()
         self._conn = conn
-        self.waited_s = 0.0
-        self._values: dict[str, Any] | None = None
-        self._error: BaseException | None = None
 
-    def _take(self, block: bool) -> None:
-        if self._values is None and self._error is None and (block or self._conn.poll()):
+    def _receive(self, block: bool) -> None:
+        if not self._done.is_set() and (block or self._conn.poll()):
             try:
                 kind, payload = self._conn.recv()
             except EOFError:  # the parent is gone
                 kind, payload = "fail", "the processing that started this exporter ended"
             if kind == "ok":
-                self._values = payload
+                self.set(**payload)
             else:
-                self._error = ProcessError(payload)
-
-    def check(self) -> None:
-        self._take(block=False)
-        if self._error is not None:
-            raise MotionUnavailable(f"the fit ended without a motion ({self._error}); the early exporter stopped")
-
-    def wait(self) -> dict[str, Any]:
-        self._take(block=True)
-        self.check()
-        assert self._values is not None
-        return self._values
+                self.fail(ProcessError(payload))
 
 
 class _MotionSender:
@@ -227,7 +221,8 @@ EARLY_EXPORTERS: set[str] = set()
 def register_exporter(name: str, fn: Exporter, early: bool = False) -> None:
     """Make ``fn`` available as ``export.extra`` entry ``name`` (a later registration replaces an earlier one).
     ``early``: ``fn`` reads the motion only through ``ctx.wait_motion()`` / :func:`late_motion`, so the pipeline may
-    start it before the fit (threads only; see :class:`EarlyExports`)."""
+    start it before the fit (:class:`EarlyExports`; in a spawned process it must be picklable, else it runs after the
+    fit)."""
     EXPORTERS[name] = fn
     if early:
         EARLY_EXPORTERS.add(name)
@@ -368,6 +363,8 @@ class EarlyExports:
         """Stop the early exporters (they raise :class:`MotionUnavailable` at their next wait or check) and wait
         for their threads / processes (a process still running after ``grace_s`` is terminated); their errors are
         dropped (``error`` is what the caller raises). Idempotent."""
+        if not self.names:
+            return
         for m in self._pending.values():
             m.fail(error)
         if self._executor is not None:
@@ -383,10 +380,7 @@ class EarlyExports:
                 proc.terminate()
                 proc.join()
             conn.close()
-        if self._procs:
-            self._procs = {}
-        elif not self._futures:
-            return
+        self._procs = {}
         if not self._out_dir_existed:
             try:
                 self._out_dir.rmdir()  # made for the early files only, and empty: the failed run leaves nothing

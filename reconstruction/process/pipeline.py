@@ -394,7 +394,7 @@ def _boxes_step(flight, logs, drones, skipped, ident, cfg, step_dir, progress, c
     out = {d: out[d] for d in drones if d in out}  # the drones' order
     sp(1, 1, "boxes" + (" (cached)" if not todo else ""))
     steps["boxes"] = {"seconds": round(time.perf_counter() - t0, 3), "cached": cached == n and n > 0,
-                      "workers": max(1, min(cfg.boxes.workers, len(todo))) if todo else 0}
+                      "workers": min(cfg.boxes.workers, len(todo))}
     return out
 
 
